@@ -1,0 +1,1 @@
+"""Reproducible numerical studies behind `python -m studies`."""

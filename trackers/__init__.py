@@ -1,0 +1,1 @@
+"""Trackers: Kalman filter, RBPF and RBMCDA, scenario simulators and metrics."""
