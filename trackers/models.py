@@ -1,0 +1,125 @@
+"""Motion and measurement models: the coordinated-turn model and its exact discretisation.
+
+The state is x = [x, y, vx, vy]. The continuous model is dx = F(a) x dt + L dw with
+
+    F(a) = [[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, a], [0, 0, -a, 0]],
+    L = [[0, 0], [0, 0], [1, 0], [0, 1]],   E[dw dw^T] = Qc dt,  Qc = q I2,
+
+(a is the turn rate in rad/s; a = 0 is the constant-velocity model). Over a step dt it is
+exactly x_k = A x_{k-1} + q_k, q_k ~ N(0, Q) with
+
+    A = expm(F dt),   Q = int_0^dt expm(F s) L Qc L^T expm(F s)^T ds.
+
+Q is computed with Van Loan's method (1978): for
+
+    M = [[-F, L Qc L^T], [0, F^T]] dt,   expm(M) = [[., G12], [0, G22]],
+
+G22 = A^T and Q = G22^T G12. Measurements are y = H x + r, r ~ N(0, R).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import expm
+
+from trackers import _checks
+
+#: Indices of the position components in the state [x, y, vx, vy].
+POSITION = (0, 1)
+
+
+def turn_F(a: float) -> np.ndarray:
+    """The (4, 4) drift matrix F(a) of the coordinated-turn model with turn rate a (rad/s)."""
+    a = float(a)
+    if not np.isfinite(a):
+        raise ValueError(f"a (turn rate) must be finite, got {a!r}")
+    return np.array(
+        [[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, a], [0.0, 0.0, -a, 0.0]]
+    )
+
+
+def turn_L() -> np.ndarray:
+    """The (4, 2) noise-gain matrix L: white acceleration noise enters the velocities."""
+    return np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def position_H() -> np.ndarray:
+    """The (2, 4) measurement matrix H = [I2 0]: the sensor measures position."""
+    return np.eye(2, 4)
+
+
+def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation of dx = F x dt + L dw, E[dw dw^T] = Qc dt, over a step dt.
+
+    F is (n, n), L is (n, s), Qc is (s, s) symmetric PSD, dt > 0.
+    Returns (A, Q): A = expm(F dt) (n, n), Q the (n, n) process-noise covariance (Van Loan).
+    """
+    F = _checks.finite_array("F", F, ndim=2)
+    n = F.shape[0]
+    if F.shape != (n, n):
+        raise ValueError(f"F must be square, got shape {F.shape}")
+    L = _checks.finite_array("L", L, ndim=2)
+    if L.shape[0] != n:
+        raise ValueError(f"L must have {n} rows to match F, got shape {L.shape}")
+    Qc = _checks.psd_covariance("Qc", Qc, L.shape[1])
+    dt = _checks.positive("dt", dt)
+
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -F
+    M[:n, n:] = L @ Qc @ L.T
+    M[n:, n:] = F.T
+    G = expm(M * dt)
+    A = G[n:, n:].T
+    Q = A @ G[:n, n:]
+    # Q is symmetric in exact arithmetic; remove the rounding asymmetry so Cholesky works.
+    return A, 0.5 * (Q + Q.T)
+
+
+@dataclass(frozen=True, eq=False)
+class LinearGaussian:
+    """A linear-Gaussian state-space model x_k = A x_{k-1} + q, y_k = H x_k + r.
+
+    A: (n, n) transition; Q: (n, n) process-noise covariance (PSD);
+    H: (d, n) measurement matrix; R: (d, d) measurement-noise covariance (PD).
+    Arrays are validated, copied and made read-only on construction.
+    """
+
+    A: np.ndarray
+    Q: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+
+    def __post_init__(self) -> None:
+        A = _checks.finite_array("A", self.A, ndim=2)
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"A must be square, got shape {A.shape}")
+        Q = _checks.psd_covariance("Q", self.Q, n)
+        H = _checks.finite_array("H", self.H, ndim=2)
+        if H.shape[1] != n:
+            raise ValueError(f"H must have {n} columns to match A, got shape {H.shape}")
+        R = _checks.covariance("R", self.R, H.shape[0])
+        for name, arr in (("A", A), ("Q", Q), ("H", H), ("R", R)):
+            arr = np.array(arr, dtype=float)
+            arr.flags.writeable = False
+            object.__setattr__(self, name, arr)
+
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return self.A.shape[0]
+
+    @property
+    def d(self) -> int:
+        """Measurement dimension."""
+        return self.H.shape[0]
+
+
+def turn_model(a: float, q: float, r: float, dt: float) -> LinearGaussian:
+    """The discretised coordinated-turn model with Qc = q I2, H = [I2 0], R = r I2."""
+    q = _checks.positive("q", q)
+    r = _checks.positive("r", r)
+    A, Q = discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
+    return LinearGaussian(A, Q, position_H(), r * np.eye(2))

@@ -1,0 +1,372 @@
+"""Simulators for the paper's two scenarios (DESIGN §3), with every parameter in a frozen
+configuration dataclass whose defaults are the DESIGN values.
+
+Time convention (both scenarios): step k = 0..T-1 is at time t_k = (k + 1) dt. A target's
+initial state x0 is its state at its birth time (0 for the Table 1 target); its truth is
+propagated exactly, x(t_k) = expm(F(a_k) dt) x(t_{k-1}), with the turn rate a_k of the
+schedule at t_k (plus turn_noise_sd N(0, 1) inside each turn window, as in the RBMCDA
+toolbox demos); the truth has no other process noise unless ``truth_process_noise`` is set.
+A target born at b and dying at e is alive at the steps with b < t_k <= e (grid-rounded).
+The filters' prior m0, P0 is at time 0, so their first action is a predict to t_0.
+
+Measurements carry their step, time and true origin: the target's id (0, 1, ...) or
+``CLUTTER`` (-1). ``NodeData.scans`` is what the filters take.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from trackers import _checks
+from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
+
+#: Origin label of a clutter measurement.
+CLUTTER = -1
+
+_PI = float(np.pi)
+
+
+@dataclass(frozen=True)
+class NodeData:
+    """The measurements of one monitoring node over T steps.
+
+    values (M, d): all measurements, ordered by step; step (M,) int step index;
+    time (M,) float time of each; origin (M,) int true origin (target id or CLUTTER);
+    scans: tuple of T arrays (k_t, d), the measurements of each step (what the filters take);
+    origins: tuple of T int arrays (k_t,), the origins of each step's measurements.
+    """
+
+    values: np.ndarray
+    step: np.ndarray
+    time: np.ndarray
+    origin: np.ndarray
+    scans: tuple
+    origins: tuple
+
+
+def _node_data(values, step, origin, times) -> NodeData:
+    values = np.asarray(values, dtype=float).reshape(-1, 2)
+    step = np.asarray(step, dtype=int)
+    origin = np.asarray(origin, dtype=int)
+    order = np.argsort(step, kind="stable")
+    values, step, origin = values[order], step[order], origin[order]
+    cuts = np.searchsorted(step, np.arange(1, len(times)))
+    return NodeData(
+        values=values,
+        step=step,
+        time=times[step],
+        origin=origin,
+        scans=tuple(np.split(values, cuts)),
+        origins=tuple(np.split(origin, cuts)),
+    )
+
+
+def _uniform_in(region, size, rng):
+    (x0, x1), (y0, y1) = region
+    return np.column_stack([rng.uniform(x0, x1, size), rng.uniform(y0, y1, size)])
+
+
+def _turn_rates(times, windows, base_rate, noise_sd, rng):
+    """a_k for each step: base_rate, replaced by rate + noise_sd N(0,1) inside each window."""
+    a = np.full(times.shape, float(base_rate))
+    for start, end, rate in windows:
+        inside = (times >= start - 1e-9) & (times <= end + 1e-9)
+        a[inside] = rate + noise_sd * rng.standard_normal(int(inside.sum()))
+    return a
+
+
+def _propagate(x0, rates, dt, q, process_noise, rng):
+    """Exact propagation of x0 through len(rates) steps with turn rates ``rates``."""
+    X = np.empty((len(rates), 4))
+    x = np.asarray(x0, dtype=float)
+    cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+    for k, a in enumerate(rates):
+        if a not in cache:  # constant-rate stretches reuse one matrix exponential
+            cache[a] = discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
+        A, Q = cache[a]
+        x = A @ x
+        if process_noise:
+            x = x + rng.multivariate_normal(np.zeros(4), Q)
+        X[k] = x
+    return X
+
+
+def _check_region(name, region):
+    r = _checks.finite_array(name, region, shape=(2, 2))
+    if np.any(r[:, 1] <= r[:, 0]):
+        raise ValueError(f"{name} must be ((xmin, xmax), (ymin, ymax)) with min < max")
+    return r
+
+
+# ----------------------------------------------------------------------------- Table 1
+
+
+@dataclass(frozen=True)
+class Table1Config:
+    """One target, two monitoring nodes (DESIGN §3, Table 1). Times in s, rates in rad/s."""
+
+    dt: float = 0.025
+    n_steps: int = 960
+    q: float = 0.1
+    r: float = 0.05
+    x0: tuple[float, ...] = (-4.0, -0.2, 1.0, 0.0)
+    turn_windows: tuple[tuple[float, float, float], ...] = (
+        (1.0, 3.0, _PI / 4.2),
+        (3.5, 5.5, -_PI / 4.2),
+        (8.0, 10.5, -_PI / 5.2),
+        (14.0, 16.5, -_PI / 5.2),
+        (19.0, 21.0, -_PI / 4.2),
+        (21.5, 23.5, _PI / 4.2),
+    )
+    turn_noise_sd: float = 0.01
+    truth_process_noise: bool = False
+    p_detect: tuple[float, ...] = (0.9, 0.7)
+    clutter_fraction: float = 0.5
+    region: tuple[tuple[float, float], tuple[float, float]] = ((-5.0, 5.0), (-4.0, 4.0))
+    # Filter settings (RBPF at each node).
+    n_particles: int = 20
+    clutter_prior: float = 0.5
+    clutter_density: float = 1 / 80
+    prior_cov: float = 0.1
+    resample_threshold: float = 0.25
+
+    def __post_init__(self) -> None:
+        _checks.positive("dt", self.dt)
+        _checks.positive_int("n_steps", self.n_steps)
+        _checks.positive("q", self.q)
+        _checks.positive("r", self.r)
+        _checks.finite_array("x0", self.x0, shape=(4,))
+        w = _checks.finite_array("turn_windows", self.turn_windows).reshape(-1, 3)
+        if np.any(w[:, 1] < w[:, 0]):
+            raise ValueError("turn_windows must be (start, end, rate) with start <= end")
+        if self.turn_noise_sd < 0:
+            raise ValueError(f"turn_noise_sd must be >= 0, got {self.turn_noise_sd}")
+        for i, p in enumerate(self.p_detect):
+            _checks.probability(f"p_detect[{i}]", p)
+        _checks.probability("clutter_fraction", self.clutter_fraction)
+        _check_region("region", self.region)
+        _checks.positive_int("n_particles", self.n_particles)
+        _checks.probability("clutter_prior", self.clutter_prior)
+        _checks.positive("clutter_density", self.clutter_density)
+        _checks.positive("prior_cov", self.prior_cov)
+        _checks.probability("resample_threshold", self.resample_threshold)
+
+    def filter_model(self) -> LinearGaussian:
+        """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
+        return turn_model(0.0, self.q, self.r, self.dt)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """The filters' prior (m0, P0) at time 0: x0 and prior_cov I4."""
+        return np.array(self.x0, dtype=float), self.prior_cov * np.eye(4)
+
+    def times(self) -> np.ndarray:
+        return self.dt * np.arange(1, self.n_steps + 1)
+
+
+@dataclass(frozen=True)
+class Table1Data:
+    """One simulated run of Table 1.
+
+    times (T,); truth (T, 4) target state at each step; turn_rates (T,) the a_k used;
+    nodes: one NodeData per monitoring node (node a, node b, ...); target id is 0.
+    """
+
+    times: np.ndarray
+    truth: np.ndarray
+    turn_rates: np.ndarray
+    nodes: tuple[NodeData, ...]
+
+
+def simulate_table1(config: Table1Config, rng: np.random.Generator) -> Table1Data:
+    """Simulate the truth and every node's measurements for one run of Table 1.
+
+    Each node, each step: no measurement with probability 1 - p_D; otherwise one
+    measurement, clutter (uniform on the region) with probability clutter_fraction and
+    H x + N(0, r I2) otherwise. Nodes draw from independent child generators of ``rng``.
+    """
+    if not isinstance(config, Table1Config):
+        raise ValueError(f"config must be a Table1Config, got {type(config).__name__}")
+    rng = _checks.generator("rng", rng)
+    truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
+    times = config.times()
+    rates = _turn_rates(times, config.turn_windows, 0.0, config.turn_noise_sd, truth_rng)
+    truth = _propagate(config.x0, rates, config.dt, config.q, config.truth_process_noise,
+                       truth_rng)
+    sd = np.sqrt(config.r)
+    nodes = []
+    T = config.n_steps
+    for p_d, nrng in zip(config.p_detect, node_rngs, strict=True):
+        detected = nrng.random(T) < p_d
+        clutter = nrng.random(T) < config.clutter_fraction
+        noise = sd * nrng.standard_normal((T, 2))
+        fake = _uniform_in(config.region, T, nrng)
+        values = np.where(clutter[:, None], fake, truth[:, :2] + noise)
+        steps = np.flatnonzero(detected)
+        origin = np.where(clutter[steps], CLUTTER, 0)
+        nodes.append(_node_data(values[steps], steps, origin, times))
+    return Table1Data(times, truth, rates, tuple(nodes))
+
+
+# ----------------------------------------------------------------------------- Table 2
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """A true target: initial state x0 at its birth time, alive on (birth, death]; turn rate
+    ``turn_rate`` outside the windows and (start, end, rate) + noise inside them."""
+
+    x0: tuple[float, ...]
+    birth: float
+    death: float
+    turn_windows: tuple[tuple[float, float, float], ...] = ()
+    turn_rate: float = 0.0
+
+
+_T1_RATE = _PI / (2 * 0.51)
+
+
+@dataclass(frozen=True)
+class Table2Config:
+    """Unknown number of targets, seven monitoring nodes (DESIGN §3, Table 2)."""
+
+    dt: float = 0.01
+    n_steps: int = 500
+    q: float = 0.1
+    meas_sd: float = 0.05
+    region: tuple[tuple[float, float], tuple[float, float]] = ((-2.0, 2.0), (-2.0, 2.0))
+    targets: tuple[TargetSpec, ...] = (
+        TargetSpec((0.0, 1.0, 1.0, 0.0), 0.0, 5.0,
+                   ((0.5, 1.0, _T1_RATE), (2.0, 2.5, _T1_RATE), (3.5, 4.0, _T1_RATE))),
+        TargetSpec((0.0, -1.0, 0.1, 1.0), 1.0, 3.5),
+        TargetSpec((-1.0, 0.0, 1.0, 0.1), 1.0, 3.0),
+        TargetSpec((-1.0, 1.0, 1.0, 0.0), 1.0, 4.0, turn_rate=1.0),
+    )
+    turn_noise_sd: float = 0.01
+    truth_process_noise: bool = False
+    p_detect: tuple[float, ...] = (0.8, 0.8, 0.9, 0.75, 0.95, 0.9, 0.85)
+    clutter_rate: float = 0.1
+    # Filter settings (RBMCDA at each node).
+    n_particles: int = 20
+    birth_prob: float = 0.01
+    lifetime_shape: float = 2.0
+    lifetime_scale: float = 0.5
+    clutter_prior: float = 0.05
+    clutter_density: float = 1 / 16
+    prior_cov: float = 10.0
+    resample_threshold: float = 0.25
+
+    def __post_init__(self) -> None:
+        _checks.positive("dt", self.dt)
+        _checks.positive_int("n_steps", self.n_steps)
+        _checks.positive("q", self.q)
+        _checks.positive("meas_sd", self.meas_sd)
+        _check_region("region", self.region)
+        for i, tg in enumerate(self.targets):
+            _checks.finite_array(f"targets[{i}].x0", tg.x0, shape=(4,))
+            if not tg.death > tg.birth:
+                raise ValueError(f"targets[{i}] must have death > birth")
+        if self.turn_noise_sd < 0:
+            raise ValueError(f"turn_noise_sd must be >= 0, got {self.turn_noise_sd}")
+        for i, p in enumerate(self.p_detect):
+            _checks.probability(f"p_detect[{i}]", p)
+        if not (np.isfinite(self.clutter_rate) and self.clutter_rate >= 0):
+            raise ValueError(f"clutter_rate must be finite and >= 0, got {self.clutter_rate}")
+        _checks.positive_int("n_particles", self.n_particles)
+        _checks.probability("birth_prob", self.birth_prob)
+        _checks.positive("lifetime_shape", self.lifetime_shape)
+        _checks.positive("lifetime_scale", self.lifetime_scale)
+        _checks.probability("clutter_prior", self.clutter_prior)
+        _checks.positive("clutter_density", self.clutter_density)
+        _checks.positive("prior_cov", self.prior_cov)
+        _checks.probability("resample_threshold", self.resample_threshold)
+
+    def filter_model(self) -> LinearGaussian:
+        """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
+        return turn_model(0.0, self.q, self.meas_sd**2, self.dt)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """New-target prior (m0, P0): zero mean, prior_cov I4."""
+        return np.zeros(4), self.prior_cov * np.eye(4)
+
+    def times(self) -> np.ndarray:
+        return self.dt * np.arange(1, self.n_steps + 1)
+
+
+@dataclass(frozen=True)
+class Table2Data:
+    """One simulated run of Table 2.
+
+    times (T,); truth (n_targets, T, 4) states, NaN where the target is not alive;
+    alive (n_targets, T) bool; nodes: one NodeData per monitoring node (origins are the
+    target's index in ``config.targets`` or CLUTTER).
+    """
+
+    times: np.ndarray
+    truth: np.ndarray
+    alive: np.ndarray
+    nodes: tuple[NodeData, ...]
+
+    def states_at(self, k: int) -> np.ndarray:
+        """The (m, 4) states of the targets alive at step k."""
+        return self.truth[self.alive[:, k], k]
+
+    @property
+    def n_alive(self) -> np.ndarray:
+        """(T,) number of alive targets at each step."""
+        return self.alive.sum(axis=0)
+
+
+def simulate_table2(config: Table2Config, rng: np.random.Generator) -> Table2Data:
+    """Simulate the truth and every node's measurements for one run of Table 2.
+
+    Each node, each step: with probability p_D one measurement of one alive target chosen
+    uniformly (none if no target is alive), plus Poisson(clutter_rate) clutter points
+    uniform on the region; a step's measurements are in random order.
+    """
+    if not isinstance(config, Table2Config):
+        raise ValueError(f"config must be a Table2Config, got {type(config).__name__}")
+    rng = _checks.generator("rng", rng)
+    truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
+    dt, T = config.dt, config.n_steps
+    times = config.times()
+    n_tg = len(config.targets)
+    truth = np.full((n_tg, T, 4), np.nan)
+    alive = np.zeros((n_tg, T), dtype=bool)
+    grid = np.arange(1, T + 1)  # t_k / dt
+    for j, tg in enumerate(config.targets):
+        b, e = round(tg.birth / dt), round(tg.death / dt)
+        steps = np.flatnonzero((grid > b) & (grid <= e))
+        if steps.size == 0:
+            continue
+        # propagate from the birth time b dt to each alive step's time
+        t_prop = dt * np.arange(b + 1, grid[steps[-1]] + 1)
+        rates = _turn_rates(t_prop, tg.turn_windows, tg.turn_rate, config.turn_noise_sd,
+                            truth_rng)
+        X = _propagate(tg.x0, rates, dt, config.q, config.truth_process_noise, truth_rng)
+        truth[j, steps] = X[grid[steps] - b - 1]
+        alive[j, steps] = True
+
+    nodes = []
+    for p_d, nrng in zip(config.p_detect, node_rngs, strict=True):
+        vals, steps, origins = [], [], []
+        n_alive = alive.sum(axis=0)
+        detected = (nrng.random(T) < p_d) & (n_alive > 0)
+        for k in np.flatnonzero(detected):
+            j = nrng.choice(np.flatnonzero(alive[:, k]))
+            vals.append(truth[j, k, :2] + config.meas_sd * nrng.standard_normal(2))
+            steps.append(k)
+            origins.append(j)
+        n_clutter = nrng.poisson(config.clutter_rate, T)
+        c_steps = np.repeat(np.arange(T), n_clutter)
+        vals.extend(_uniform_in(config.region, c_steps.size, nrng))
+        steps.extend(c_steps)
+        origins.extend([CLUTTER] * c_steps.size)
+        vals_arr = np.asarray(vals, dtype=float).reshape(-1, 2)
+        steps_arr = np.asarray(steps, dtype=int)
+        origins_arr = np.asarray(origins, dtype=int)
+        # random order within a step: sort by step, ties broken by a random key
+        order = np.lexsort((nrng.random(steps_arr.size), steps_arr))
+        nodes.append(_node_data(vals_arr[order], steps_arr[order], origins_arr[order], times))
+    return Table2Data(times, truth, alive, tuple(nodes))
