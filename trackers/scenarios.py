@@ -15,7 +15,7 @@ Measurements carry their step, time and true origin: the target's id (0, 1, ...)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

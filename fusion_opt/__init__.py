@@ -1,0 +1,20 @@
+"""fusion-opt: distributed data fusion as convex optimisation.
+
+    import fusion_opt as fo
+    r = fo.bci(means, covs, criterion="trace")      # means (N, n), covs (N, n, n)
+    r.weights, r.mean, r.cov, r.objective, r.gap
+
+Covariance intersection (CI), batch CI (BCI) and the detection-aware modified BCI (MBCI)
+of Daeichian & Honarvar (2018), each a convex program over the weight simplex, solved by
+Clarabel through CVXPY by default, with an optimality certificate on every result.
+"""
+
+from .backends import BACKENDS
+from .fusion import bci, ci, fuse, mbci, optimality_gap
+from .mbci import detection_scales
+from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError
+
+__all__ = [
+    "BACKENDS", "BatchFusionResult", "FusionInputError", "FusionResult", "FusionSolverError",
+    "bci", "ci", "detection_scales", "fuse", "mbci", "optimality_gap",
+]

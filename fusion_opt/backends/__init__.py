@@ -1,0 +1,48 @@
+"""Weight solvers (backends) and their registry.
+
+A backend maps a scaled problem (Ys (N, n, n), M (n, n), criterion; see `scaling.py`) to
+weights near the simplex. `fusion.py` puts them exactly on the simplex, polishes them and
+computes the optimality certificate, the same way for every backend.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WeightSolution:
+    """w (N,), the solver's status string, its iteration count, wall time (s) of the
+    backend call and the solver's own reported time (s; equal to solve_time if native)."""
+
+    w: np.ndarray
+    status: str
+    iterations: int
+    solve_time: float
+    solver_time: float | None = None
+
+
+def _cvxpy(name):
+    def solve(Ys, M, criterion):
+        from .cvxpy_backends import solve as cvx_solve
+
+        return cvx_solve(name, Ys, M, criterion)
+
+    return solve
+
+
+def _newton(Ys, M, criterion):
+    import time
+
+    from .newton import solve as newton_solve
+
+    t0 = time.perf_counter()
+    sol = newton_solve(Ys[None], M[None], criterion)
+    status = "optimal" if sol.converged[0] else "optimal_inaccurate"
+    return WeightSolution(sol.w[0], status, int(sol.iterations[0]), time.perf_counter() - t0)
+
+
+REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"), "newton": _newton}
+BACKENDS = tuple(REGISTRY)

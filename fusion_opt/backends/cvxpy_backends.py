@@ -1,0 +1,45 @@
+"""Weight solvers through CVXPY: "clarabel" (the reference) and "scs".
+
+Each solves the cached DPP program of `programs.py` on the scaled problem and maps the
+solver's status to weights or to `FusionSolverError`. Tolerances are tight; the Newton
+polish of `fusion.py` then takes the certificate to machine precision.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cvxpy as cp
+import numpy as np
+
+from ..programs import program, set_data
+from ..results import FusionSolverError
+from . import WeightSolution
+
+SOLVERS = {
+    "clarabel": (cp.CLARABEL, {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10,
+                               "tol_ktratio": 1e-9, "max_iter": 400}),
+    "scs": (cp.SCS, {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000}),
+}
+_OK = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}
+
+
+def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> WeightSolution:
+    """Ys (N, n, n), M (n, n) of a scaled problem; returns weights and solver stats."""
+    N, n = Ys.shape[:2]
+    solver, options = SOLVERS[backend]
+    prog = program(n, N, criterion, solver)
+    set_data(prog, Ys, M)
+    t0 = time.perf_counter()
+    try:
+        prog.problem.solve(solver=solver, **options)
+    except cp.SolverError as exc:
+        raise FusionSolverError(backend, "solver_error", str(exc)) from None
+    wall = time.perf_counter() - t0
+    prog.solves += 1
+    status = prog.problem.status
+    if status not in _OK or prog.w.value is None or not np.all(np.isfinite(prog.w.value)):
+        raise FusionSolverError(backend, str(status))
+    stats = prog.problem.solver_stats
+    return WeightSolution(np.array(prog.w.value), _OK[status], int(stats.num_iters or 0), wall,
+                          stats.solve_time)

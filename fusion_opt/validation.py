@@ -1,0 +1,129 @@
+"""Input checks shared by every entry point.
+
+Each check raises `FusionInputError` naming the argument, the node (and, in a batch, the
+problem) index and what is wrong, so a bad input never reaches a solver or turns into NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .results import FusionInputError
+
+CRITERIA = ("trace", "logdet")
+SYMMETRY_RTOL = 1e-8
+
+
+def _where(index: tuple[int, ...]) -> str:
+    """'node 3' or 'problem 2, node 3' for a multi-index (batch..., node)."""
+    if len(index) == 1:
+        return f"node {index[0]}"
+    return f"problem {index[:-1] if len(index) > 2 else index[0]}, node {index[-1]}"
+
+
+def check_criterion(criterion) -> str:
+    if criterion not in CRITERIA:
+        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    return criterion
+
+
+def check_estimates(means, covs, batch: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Validate node estimates and return them as float arrays, covariances symmetrised.
+
+    means (N, n) and covs (N, n, n); with batch=True, (B, N, n) and (B, N, n, n).
+    """
+    lead = 2 if batch else 1
+    means = _finite_array(means, "means")
+    covs = _finite_array(covs, "covs")
+    if means.ndim != lead + 1:
+        raise FusionInputError(
+            f"means must have shape {'(B, N, n)' if batch else '(N, n)'}, got {means.shape}")
+    if covs.ndim != lead + 2 or covs.shape[-1] != covs.shape[-2]:
+        raise FusionInputError(
+            f"covs must have shape {'(B, N, n, n)' if batch else '(N, n, n)'}, got {covs.shape}")
+    if covs.shape[:-1] != means.shape:
+        raise FusionInputError(
+            f"covs shape {covs.shape} does not match means shape {means.shape}")
+    if means.shape[-2] == 0:
+        raise FusionInputError("means and covs hold no nodes (N = 0)")
+    if means.shape[-1] == 0:
+        raise FusionInputError("the state dimension n is 0")
+    if batch and means.shape[0] == 0:
+        raise FusionInputError("the batch holds no problems (B = 0)")
+    return means, _check_spd(covs)
+
+
+def _finite_array(x, name: str) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise FusionInputError(f"{name} must be an array of numbers: {exc}") from None
+    bad = ~np.isfinite(a)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise FusionInputError(f"{name} has a non-finite value {a[idx]} at index {idx}")
+    return a
+
+
+def _check_spd(covs: np.ndarray) -> np.ndarray:
+    """Symmetric within SYMMETRY_RTOL of its largest entry, and positive definite."""
+    scale = np.abs(covs).max(axis=(-2, -1))
+    asym = np.abs(covs - np.swapaxes(covs, -1, -2)).max(axis=(-2, -1))
+    bad = asym > SYMMETRY_RTOL * scale
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise FusionInputError(
+            f"covs of {_where(idx)} is not symmetric: max |P - P^T| = {asym[idx]:.3g} "
+            f"exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
+    sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    ok = _cholesky_ok(sym)
+    if not ok.all():
+        idx = tuple(int(i) for i in np.argwhere(~ok)[0])
+        eig = np.linalg.eigvalsh(sym[idx]).min()
+        raise FusionInputError(
+            f"covs of {_where(idx)} is not positive definite (smallest eigenvalue {eig:.3g})")
+    return sym
+
+
+def _cholesky_ok(covs: np.ndarray) -> np.ndarray:
+    """Boolean mask over the leading axes: True where the Cholesky factorisation succeeds."""
+    flat = covs.reshape(-1, *covs.shape[-2:])
+    try:
+        np.linalg.cholesky(flat)
+        return np.ones(covs.shape[:-2], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
+    ok = np.empty(len(flat), dtype=bool)
+    for k, c in enumerate(flat):  # only on failure, to find which matrix
+        try:
+            np.linalg.cholesky(c)
+            ok[k] = True
+        except np.linalg.LinAlgError:
+            ok[k] = False
+    return ok.reshape(covs.shape[:-2])
+
+
+def per_node(value, n_nodes: int, name: str) -> np.ndarray:
+    """A scalar or one value per node, as a finite (N,) float array."""
+    a = _finite_array(value, name)
+    if a.ndim == 0:
+        return np.full(n_nodes, float(a))
+    if a.shape != (n_nodes,):
+        raise FusionInputError(
+            f"{name} must be a scalar or have one value per node ({n_nodes},), got {a.shape}")
+    return a
+
+
+def check_detection(p_detect, chi, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """p_detect in [0, 1] and chi in (0, 1], each scalar or (N,)."""
+    p = per_node(p_detect, n_nodes, "p_detect")
+    c = per_node(chi, n_nodes, "chi")
+    bad_p = np.flatnonzero((p < 0) | (p > 1))
+    if bad_p.size:
+        i = bad_p[0]
+        raise FusionInputError(f"p_detect of node {i} must lie in [0, 1], got {p[i]}")
+    bad_c = np.flatnonzero((c <= 0) | (c > 1))
+    if bad_c.size:
+        i = bad_c[0]
+        raise FusionInputError(f"chi of node {i} must lie in (0, 1], got {c[i]}")
+    return p, c

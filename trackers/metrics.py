@@ -1,0 +1,179 @@
+"""Estimation-error metrics for single- and multi-target tracking.
+
+Single target, over T steps with estimates m_k, covariances P_k and truth x_k:
+
+    MSE   = (1/T) sum_k ||m_k - x_k||^2         (the paper's MSE: sum over the components
+                                                 given, mean over time)
+    RMSE  = sqrt(MSE)
+    MNCM  = (1/T) sum_k ||P_k||_2               (mean spectral norm of the covariance)
+    NEES_k = (m_k - x_k)^T P_k^-1 (m_k - x_k),   ANEES = mean of NEES over the samples.
+
+For a consistent filter NEES_k ~ chi2(n); the mean of M such independent values lies in
+[chi2.ppf(0.025, M n) / M, chi2.ppf(0.975, M n) / M] with probability 0.95.
+
+Multi-target, for point sets X (m, d) and Y (k, d), with d_c(x, y) = min(c, ||x - y||):
+
+    OSPA (Schuhmacher et al. 2008), m <= k:
+        ( (1/k) (min_pi sum_{i<=m} d_c(x_i, y_pi(i))^p + c^p (k - m)) )^(1/p)
+    GOSPA (Rahmathullah et al. 2017), m <= k:
+        ( min_pi sum_{i<=m} d_c(x_i, y_pi(i))^p + (c^p / alpha) (k - m) )^(1/p)
+    (with alpha = 2 this is the assignment distance with a cost c^p / 2 per missed or false
+    target). The optimal assignment uses scipy.optimize.linear_sum_assignment.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
+
+from trackers import _checks
+
+
+def _components(name: str, arr: np.ndarray, components) -> np.ndarray:
+    if components is None:
+        return arr
+    idx = np.asarray(components, dtype=int).reshape(-1)
+    n = arr.shape[-1]
+    if idx.size == 0 or np.any(idx < 0) or np.any(idx >= n):
+        raise ValueError(f"components must be indices in [0, {n}), got {components!r}")
+    return arr[..., idx]
+
+
+def _pair(estimates, truth):
+    m = _checks.finite_array("estimates", estimates, ndim=2)
+    x = _checks.finite_array("truth", truth, ndim=2)
+    if m.shape != x.shape:
+        raise ValueError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
+    return m, x
+
+
+def mse(estimates, truth, components=None) -> float:
+    """Mean over time of the squared error norm. estimates, truth (T, n); ``components``
+    selects state indices (e.g. models.POSITION), default the full state."""
+    m, x = _pair(estimates, truth)
+    e = _components("estimates", m - x, components)
+    return float(np.mean(np.sum(e * e, axis=-1)))
+
+
+def rmse(estimates, truth, components=None) -> float:
+    """sqrt(mse): root mean (over time) squared error norm."""
+    return float(np.sqrt(mse(estimates, truth, components)))
+
+
+def _cov_block(covs, components):
+    P = _checks.finite_array("covs", covs, ndim=3)
+    if P.shape[1] != P.shape[2]:
+        raise ValueError(f"covs must be (T, n, n), got {P.shape}")
+    if components is not None:
+        idx = np.asarray(components, dtype=int).reshape(-1)
+        _components("covs", P[:, 0, :], idx)  # range check
+        P = P[:, idx[:, None], idx[None, :]]
+    return P
+
+
+def mncm(covs, components=None) -> float:
+    """Mean over time of the spectral norm ||P_k||_2 of covariances (T, n, n); ``components``
+    takes the block of those state indices (e.g. models.POSITION)."""
+    P = _cov_block(covs, components)
+    return float(np.mean(np.linalg.norm(P, ord=2, axis=(1, 2))))
+
+
+def nees(estimates, truth, covs, components=None) -> np.ndarray:
+    """(T,) normalised estimation error squared e_k^T P_k^-1 e_k."""
+    m, x = _pair(estimates, truth)
+    P = _cov_block(covs, components)
+    if P.shape[0] != m.shape[0]:
+        raise ValueError(f"covs has {P.shape[0]} steps, estimates {m.shape[0]}")
+    e = _components("estimates", m - x, components)
+    if e.shape[1] != P.shape[1]:
+        raise ValueError(f"covs blocks are {P.shape[1:]}, errors have {e.shape[1]} components")
+    return np.einsum("ti,ti->t", e, np.linalg.solve(P, e[..., None])[..., 0])
+
+
+def anees(estimates, truth, covs, components=None) -> float:
+    """Mean NEES over the steps."""
+    return float(np.mean(nees(estimates, truth, covs, components)))
+
+
+def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` interval of the mean of ``count`` independent chi2(dim) values:
+    chi2.ppf((1 -+ level) / 2, count dim) / count."""
+    dim = _checks.positive_int("dim", dim)
+    count = _checks.positive_int("count", count)
+    level = _checks.probability("level", level)
+    a = (1.0 - level) / 2.0
+    lo, hi = chi2.ppf([a, 1.0 - a], count * dim) / count
+    return float(lo), float(hi)
+
+
+def nees_bounds(dim: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` interval of one NEES value, chi2(dim)."""
+    return anees_bounds(dim, 1, level)
+
+
+def _point_sets(X, Y):
+    X = np.asarray(X, dtype=float)
+    Y = np.asarray(Y, dtype=float)
+    for name, S in (("X", X), ("Y", Y)):
+        if S.ndim != 2:
+            raise ValueError(f"{name} must be a (m, d) array of points, got shape {S.shape}")
+        if not np.all(np.isfinite(S)):
+            raise ValueError(f"{name} contains non-finite values")
+    if X.shape[0] and Y.shape[0] and X.shape[1] != Y.shape[1]:
+        raise ValueError(f"X and Y points differ in dimension: {X.shape[1]} vs {Y.shape[1]}")
+    return X, Y
+
+
+def _assignment_cost(X, Y, c, p) -> float:
+    """min over assignments of sum d_c(x, y)^p for the min(m, k) assigned pairs."""
+    if X.shape[0] == 0 or Y.shape[0] == 0:
+        return 0.0
+    D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
+    C = np.minimum(D, c) ** p
+    r, s = linear_sum_assignment(C)
+    return float(C[r, s].sum())
+
+
+def ospa(X, Y, c: float, p: float) -> float:
+    """OSPA distance between point sets X (m, d) and Y (k, d) with cut-off c > 0, order p >= 1.
+
+    0 if both sets are empty; c if exactly one is.
+    """
+    X, Y = _point_sets(X, Y)
+    c = _checks.positive("c", c)
+    p = _checks.positive("p", p)
+    if p < 1:
+        raise ValueError(f"p must be >= 1, got {p}")
+    m, k = sorted((X.shape[0], Y.shape[0]))
+    if k == 0:
+        return 0.0
+    total = _assignment_cost(X, Y, c, p) + c**p * (k - m)
+    return float((total / k) ** (1.0 / p))
+
+
+def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
+    """GOSPA distance between X (m, d) and Y (k, d): cut-off c > 0, order p >= 1,
+    alpha in (0, 2] (alpha = 2: the cost c^p / 2 per missed or false target)."""
+    X, Y = _point_sets(X, Y)
+    c = _checks.positive("c", c)
+    p = _checks.positive("p", p)
+    if p < 1:
+        raise ValueError(f"p must be >= 1, got {p}")
+    alpha = _checks.positive("alpha", alpha)
+    if alpha > 2:
+        raise ValueError(f"alpha must be in (0, 2], got {alpha}")
+    m, k = sorted((X.shape[0], Y.shape[0]))
+    total = _assignment_cost(X, Y, c, p) + c**p / alpha * (k - m)
+    return float(total ** (1.0 / p))
+
+
+def cardinality_error(n_estimated, n_true) -> np.ndarray:
+    """(T,) signed cardinality error: estimated minus true number of targets per step."""
+    a = np.asarray(n_estimated)
+    b = np.asarray(n_true)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"n_estimated {a.shape} and n_true {b.shape} must be equal 1-D shapes")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("n_estimated and n_true must be finite")
+    return a - b
