@@ -1,0 +1,122 @@
+"""Metrics on hand-computed cases and against brute force."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from trackers import metrics
+
+
+def brute_force_assignment(X, Y, c, p):
+    """min over injective maps of the smaller set into the larger, by enumeration."""
+    if len(X) > len(Y):
+        X, Y = Y, X
+    if len(X) == 0:
+        return 0.0
+    best = np.inf
+    for perm in itertools.permutations(range(len(Y)), len(X)):
+        cost = sum(min(c, np.linalg.norm(X[i] - Y[j])) ** p for i, j in enumerate(perm))
+        best = min(best, cost)
+    return best
+
+
+E = np.zeros((0, 2))
+
+
+@pytest.mark.parametrize(
+    ("X", "Y", "c", "p", "ospa", "gospa"),
+    [
+        # 1-D: pair 0-1 (cost 1), one extra point costs c
+        ([[0.0]], [[1.0], [3.0]], 5.0, 1, (1 + 5) / 2, 1 + 5 / 2),
+        # greedy nearest pairing (2-1.9, 0-10) is not optimal; optimal is 0-1.9, 2-10
+        ([[0.0], [2.0]], [[1.9], [10.0]], 20.0, 1, (1.9 + 8) / 2, 1.9 + 8),
+        ([[0.0], [2.0]], [[1.9], [10.0]], 20.0, 2, np.sqrt((1.9**2 + 64) / 2),
+         np.sqrt(1.9**2 + 64)),
+        # cut-off: distance 10 counts as c = 2
+        ([[0.0]], [[10.0]], 2.0, 2, 2.0, 2.0),
+        # 2-D: two vertical pairs at distance 1
+        ([[0.0, 0.0], [1.0, 0.0]], [[0.0, 1.0], [1.0, 1.0]], 10.0, 2, 1.0, np.sqrt(2.0)),
+        # 2-D, 3-4-5 triangle and an extra point beyond the cut-off
+        ([[0.0, 0.0]], [[3.0, 4.0], [100.0, 0.0]], 6.0, 1, (5 + 6) / 2, 5 + 3),
+        # empty sets
+        (E, E, 3.0, 2, 0.0, 0.0),
+        (E, [[0.0, 0.0], [1.0, 1.0], [5.0, 5.0]], 2.0, 2, 2.0, np.sqrt(4 / 2 * 3)),
+    ],
+)
+def test_ospa_gospa_hand_computed(X, Y, c, p, ospa, gospa):
+    X, Y = np.asarray(X, float), np.asarray(Y, float)
+    assert metrics.ospa(X, Y, c, p) == pytest.approx(ospa, rel=1e-12)
+    assert metrics.gospa(X, Y, c, p) == pytest.approx(gospa, rel=1e-12)
+    assert metrics.ospa(Y, X, c, p) == pytest.approx(ospa, rel=1e-12)
+    assert metrics.gospa(Y, X, c, p) == pytest.approx(gospa, rel=1e-12)
+
+
+def test_ospa_gospa_brute_force_symmetry_identity():
+    rng = np.random.default_rng(11)
+    for _ in range(30):
+        m, k = rng.integers(0, 5, size=2)
+        X, Y = rng.normal(size=(m, 2)) * 2, rng.normal(size=(k, 2)) * 2
+        c, p = rng.uniform(0.5, 3), rng.choice([1, 2, 3])
+        cost = brute_force_assignment(X, Y, c, p)
+        big = max(m, k)
+        ref_ospa = 0.0 if big == 0 else ((cost + c**p * abs(m - k)) / big) ** (1 / p)
+        ref_gospa = (cost + c**p / 2 * abs(m - k)) ** (1 / p)
+        assert metrics.ospa(X, Y, c, p) == pytest.approx(ref_ospa, rel=1e-10, abs=1e-12)
+        assert metrics.gospa(X, Y, c, p) == pytest.approx(ref_gospa, rel=1e-10, abs=1e-12)
+        assert metrics.ospa(X, Y, c, p) == pytest.approx(metrics.ospa(Y, X, c, p))
+        assert metrics.gospa(X, Y, c, p) == pytest.approx(metrics.gospa(Y, X, c, p))
+        assert metrics.ospa(X, X[::-1], c, p) == pytest.approx(0.0, abs=1e-12)
+        assert metrics.gospa(X, X, c, p) == pytest.approx(0.0, abs=1e-12)
+        assert metrics.ospa(X, Y, c, p) <= c + 1e-12
+
+
+def test_ospa_rejects_bad_input():
+    with pytest.raises(ValueError, match="c must be a finite positive"):
+        metrics.ospa(E, E, 0.0, 2)
+    with pytest.raises(ValueError, match="p must be >= 1"):
+        metrics.gospa(E, E, 1.0, 0.5)
+    with pytest.raises(ValueError, match="X must be a"):
+        metrics.ospa(np.zeros(3), E, 1.0, 2)
+    with pytest.raises(ValueError, match="differ in dimension"):
+        metrics.ospa(np.zeros((1, 2)), np.zeros((1, 3)), 1.0, 2)
+    with pytest.raises(ValueError, match="alpha must be in"):
+        metrics.gospa(E, E, 1.0, 2, alpha=3.0)
+
+
+def test_mse_rmse_mncm_hand_computed():
+    est = np.array([[1.0, 0.0, 2.0, 0.0], [0.0, 2.0, 0.0, 0.0]])
+    truth = np.zeros((2, 4))
+    assert metrics.mse(est, truth) == pytest.approx((5 + 4) / 2)
+    assert metrics.mse(est, truth, components=(0, 1)) == pytest.approx((1 + 4) / 2)
+    assert metrics.rmse(est, truth) == pytest.approx(np.sqrt(4.5))
+    covs = np.array([np.diag([3.0, 1.0, 7.0, 0.5]), np.eye(4)])
+    covs[1, :2, :2] = [[2.0, 1.0], [1.0, 2.0]]  # eigenvalues 1 and 3
+    assert metrics.mncm(covs) == pytest.approx((7 + 3) / 2)
+    assert metrics.mncm(covs, components=(0, 1)) == pytest.approx((3 + 3) / 2)
+    with pytest.raises(ValueError, match="same shape"):
+        metrics.mse(est, truth[:1])
+    with pytest.raises(ValueError, match="components must be"):
+        metrics.mse(est, truth, components=(0, 9))
+
+
+def test_nees_and_bounds():
+    est = np.array([[1.0, 2.0], [0.0, 0.0]])
+    covs = np.array([np.diag([1.0, 4.0]), np.eye(2)])
+    np.testing.assert_allclose(metrics.nees(est, np.zeros((2, 2)), covs), [2.0, 0.0])
+    assert metrics.anees(est, np.zeros((2, 2)), covs) == pytest.approx(1.0)
+    # chi-square table values: chi2(4) 2.5% / 97.5% quantiles, and chi2(80) / 20
+    lo, hi = metrics.nees_bounds(4)
+    assert (lo, hi) == pytest.approx((0.4844, 11.1433), abs=1e-4)
+    lo, hi = metrics.anees_bounds(4, 20)
+    assert (lo, hi) == pytest.approx((57.1532 / 20, 106.6286 / 20), abs=1e-4)
+    with pytest.raises(ValueError, match="count must be an integer"):
+        metrics.anees_bounds(4, 0)
+    with pytest.raises(ValueError, match="level must be a probability"):
+        metrics.anees_bounds(4, 2, level=1.5)
+
+
+def test_cardinality_error():
+    np.testing.assert_array_equal(metrics.cardinality_error([1, 3, 2], [1, 2, 4]), [0, 1, -2])
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        metrics.cardinality_error([1, 2], [1])

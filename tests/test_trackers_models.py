@@ -1,0 +1,84 @@
+"""Exact discretisation of the turn model against closed forms and numerical quadrature."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.integrate import quad_vec
+from scipy.linalg import expm
+
+from trackers import models
+
+
+def cv_closed_form(q, dt):
+    """Constant-velocity A and Q in closed form (Bar-Shalom, white-noise acceleration)."""
+    I2 = np.eye(2)
+    A = np.block([[I2, dt * I2], [0 * I2, I2]])
+    Q = q * np.block([[dt**3 / 3 * I2, dt**2 / 2 * I2], [dt**2 / 2 * I2, dt * I2]])
+    return A, Q
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.025, 1.0])
+def test_discretize_a0_equals_constant_velocity(dt):
+    A, Q = models.discretize(models.turn_F(0.0), models.turn_L(), 0.1 * np.eye(2), dt)
+    A_ref, Q_ref = cv_closed_form(0.1, dt)
+    np.testing.assert_allclose(A, A_ref, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(Q, Q_ref, rtol=1e-10, atol=1e-15)
+
+
+@pytest.mark.parametrize(("a", "dt"), [(np.pi / 4.2, 0.025), (-1.0, 0.5), (3.08, 0.3)])
+def test_discretize_turning_matches_quadrature(a, dt):
+    F, L, Qc = models.turn_F(a), models.turn_L(), np.diag([0.1, 0.3])
+    A, Q = models.discretize(F, L, Qc, dt)
+
+    def integrand(s):
+        E = expm(F * s)
+        return E @ L @ Qc @ L.T @ E.T
+
+    Q_ref, _ = quad_vec(integrand, 0.0, dt, epsabs=1e-14, epsrel=1e-12)
+    np.testing.assert_allclose(Q, Q_ref, rtol=1e-9, atol=1e-14)
+    # velocity block of A is the rotation by a dt (closed form of expm for the turn model)
+    c, s = np.cos(a * dt), np.sin(a * dt)
+    np.testing.assert_allclose(A[2:, 2:], [[c, s], [-s, c]], atol=1e-12)
+    np.testing.assert_allclose(A[:2, 2:], [[s / a, (1 - c) / a], [-(1 - c) / a, s / a]],
+                               atol=1e-12)
+    np.testing.assert_allclose(Q, Q.T, atol=0)
+    assert np.all(np.linalg.eigvalsh(Q) > 0)
+
+
+def test_linear_gaussian_is_frozen_and_read_only():
+    model = models.turn_model(0.0, 0.1, 0.05, 0.025)
+    assert (model.n, model.d) == (4, 2)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        model.A = np.eye(4)
+    with pytest.raises(ValueError):
+        model.A[0, 0] = 2.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"A": np.eye(3)}, "Q must have shape"),
+        ({"A": np.full((4, 4), np.nan)}, "A contains non-finite"),
+        ({"H": np.eye(2, 3)}, "H must have 4 columns"),
+        ({"R": -np.eye(2)}, "R must be positive definite"),
+        ({"Q": np.diag([1.0, 1.0, 1.0, -1.0])}, "Q must be positive semidefinite"),
+        ({"R": np.array([[1.0, 0.5], [0.0, 1.0]])}, "R must be symmetric"),
+    ],
+)
+def test_linear_gaussian_rejects_bad_input(kwargs, match):
+    args = {"A": np.eye(4), "Q": np.eye(4), "H": np.eye(2, 4), "R": np.eye(2)} | kwargs
+    with pytest.raises(ValueError, match=match):
+        models.LinearGaussian(**args)
+
+
+def test_discretize_rejects_bad_input():
+    F, L = models.turn_F(0.0), models.turn_L()
+    with pytest.raises(ValueError, match="dt must be a finite positive"):
+        models.discretize(F, L, np.eye(2), 0.0)
+    with pytest.raises(ValueError, match="L must have 4 rows"):
+        models.discretize(F, L.T, np.eye(2), 0.1)
+    with pytest.raises(ValueError, match="F must be square"):
+        models.discretize(F[:3], L, np.eye(2), 0.1)
+    with pytest.raises(ValueError, match="turn rate"):
+        models.turn_F(np.inf)
