@@ -1,0 +1,122 @@
+"""RBPF: reduces to the Kalman filter without clutter, beats it in clutter, reproduces the
+toolbox's Table 1 numbers and is consistent (ANEES) on a clutter-free run."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from trackers import kalman, metrics, rbpf, scenarios
+
+
+def table1(**overrides):
+    cfg = dataclasses.replace(scenarios.Table1Config(), **overrides)
+    m0, P0 = cfg.prior()
+    return cfg, cfg.filter_model(), m0, P0
+
+
+def test_no_clutter_and_zero_clutter_prior_equals_kalman():
+    cfg, model, m0, P0 = table1(clutter_fraction=0.0, n_steps=300)
+    data = scenarios.simulate_table1(cfg, np.random.default_rng(1))
+    scans = data.nodes[1].scans  # node b: many missed steps, so some steps only predict
+    assert sum(len(s) == 0 for s in scans) > 50
+    out = rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(2), n_particles=13,
+                   clutter_prior=0.0)
+    ref = kalman.run(scans, model, m0, P0)
+    np.testing.assert_allclose(out.means, ref.means, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(out.covs, ref.covs, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(out.ess, 13.0, rtol=1e-12)
+    assert not out.resampled.any()
+
+
+def test_several_measurements_per_step_and_outputs():
+    cfg, model, m0, P0 = table1(n_steps=50)
+    rng = np.random.default_rng(4)
+    scans = [rng.uniform(-4, 4, size=(rng.integers(0, 4), 2)) for _ in range(50)]
+    out = rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(0), n_particles=30)
+    assert out.means.shape == (50, 4) and out.covs.shape == (50, 4, 4)
+    assert out.ess.shape == (50,) and np.all((out.ess >= 1 - 1e-9) & (out.ess <= 30 + 1e-9))
+    assert np.all(np.linalg.eigvalsh(out.covs) > 0)
+    again = rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(0), n_particles=30)
+    np.testing.assert_array_equal(out.means, again.means)  # seeded: reproducible
+
+
+def test_mixture_moments_against_sampling_free_formula():
+    rng = np.random.default_rng(8)
+    w = rng.dirichlet(np.ones(5))
+    m = rng.normal(size=(5, 3))
+    B = rng.normal(size=(5, 3, 3))
+    P = B @ np.swapaxes(B, 1, 2)
+    mean, cov = rbpf.mixture_moments(w, m, P)
+    # E[x x^T] - E[x] E[x]^T of the mixture, by the law of total covariance written out
+    second = sum(w[i] * (P[i] + np.outer(m[i], m[i])) for i in range(5))
+    np.testing.assert_allclose(mean, sum(w[i] * m[i] for i in range(5)), rtol=1e-12)
+    np.testing.assert_allclose(cov, second - np.outer(mean, mean), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_table1_rbpf_beats_kalman_and_matches_toolbox_ranges():
+    """Seed-average over 4 runs of each node vs the toolbox ranges of DESIGN §3.
+
+    DESIGN's ranges (0.13-0.16 / 0.14-0.18 full-state MSE, 0.066-0.068 / 0.072-0.078 MNCM)
+    are the spread of single runs of the toolbox's filter over 8 seeds. A single run's MSE
+    varies by about 0.015 (sd) and its MNCM by about 0.001, and our simulator is an
+    independent re-implementation (own random streams), so the 4-run average is required to
+    lie in the range widened by 0.02 (MSE) and 0.002 (MNCM) on each side.
+    """
+    cfg, model, m0, P0 = table1()
+    ranges = {0: ((0.13, 0.16), (0.066, 0.068)), 1: ((0.14, 0.18), (0.072, 0.078))}
+    mse = {0: [], 1: []}
+    mncm = {0: [], 1: []}
+    for ss in np.random.SeedSequence(7).spawn(4):
+        data_rng, filt_rng = (np.random.default_rng(s) for s in ss.spawn(2))
+        data = scenarios.simulate_table1(cfg, data_rng)
+        for i, node in enumerate(data.nodes):
+            out = rbpf.run(node.scans, model, m0, P0, rng=filt_rng)
+            kf = kalman.run(node.scans, model, m0, P0)
+            mse_pf = metrics.mse(out.means, data.truth)
+            assert mse_pf < 0.1 * metrics.mse(kf.means, data.truth)
+            mse[i].append(mse_pf)
+            mncm[i].append(metrics.mncm(out.covs))
+    for i, ((lo, hi), (clo, chi)) in ranges.items():
+        assert lo - 0.02 <= np.mean(mse[i]) <= hi + 0.02, (i, mse[i])
+        assert clo - 0.002 <= np.mean(mncm[i]) <= chi + 0.002, (i, mncm[i])
+
+
+@pytest.mark.slow
+def test_clutter_free_anees_in_chi_square_band():
+    """Truth drawn from the filter's own model (no turns, process noise on), no clutter;
+    the RBPF keeps its clutter prior 0.5. Per-step NEES averaged over M runs must lie in
+    the chi2(M n)/M 95% band on most steps, and so must the grand mean (whose spread is at
+    most that of a per-step average, since averaging over steps cannot add variance)."""
+    cfg, model, m0, P0 = table1(clutter_fraction=0.0, turn_windows=(), truth_process_noise=True,
+                                n_steps=300)
+    M = 20
+    nees = []
+    for ss in np.random.SeedSequence(11).spawn(M):
+        data_rng, filt_rng = (np.random.default_rng(s) for s in ss.spawn(2))
+        data = scenarios.simulate_table1(cfg, data_rng)
+        out = rbpf.run(data.nodes[0].scans, model, m0, P0, rng=filt_rng)
+        nees.append(metrics.nees(out.means, data.truth, out.covs))
+    per_step = np.mean(nees, axis=0)
+    lo, hi = metrics.anees_bounds(4, M)
+    assert lo <= per_step.mean() <= hi
+    assert np.mean((per_step >= lo) & (per_step <= hi)) >= 0.85
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"n_particles": 0}, "n_particles must be an integer >= 1"),
+        ({"n_particles": 2.5}, "n_particles must be an integer >= 1"),
+        ({"clutter_prior": 1.5}, "clutter_prior must be a probability"),
+        ({"clutter_density": -1.0}, "clutter_density must be a finite positive"),
+        ({"rng": 3}, "rng must be a numpy.random.Generator"),
+        ({"resample_threshold": -0.1}, "resample_threshold must be a probability"),
+    ],
+)
+def test_rbpf_rejects_bad_input(kwargs, match):
+    _, model, m0, P0 = table1()
+    args = {"rng": np.random.default_rng(0)} | kwargs
+    with pytest.raises(ValueError, match=match):
+        rbpf.run([np.zeros((1, 2))], model, m0, P0, **args)
