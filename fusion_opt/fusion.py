@@ -89,8 +89,7 @@ def _stack_pair(a, b, name_a, name_b) -> np.ndarray:
 def _fuse_weights(means, covs, criterion, backend, polish, method) -> FusionResult:
     Ys = information(covs)
     if len(Ys) == 1:
-        return _result(means, Ys, scale(Ys, criterion), np.ones(1), "optimal", backend, 0.0,
-                       0, 0, method)
+        return _single(means[0], covs[0], criterion, backend, method)
     sp = scale(Ys, criterion)
     t0 = time.perf_counter()
     sol = REGISTRY[backend](sp.Ys, sp.M, criterion)
@@ -113,6 +112,14 @@ def _polish(sp: ScaledProblem, w: np.ndarray, status: str):
         status = "optimal" if sol.converged[0] else status
         return sol.w[0], status, int(sol.iterations[0])
     return w, status, int(sol.iterations[0])
+
+
+def _single(mean, cov, criterion, backend, method) -> FusionResult:
+    """N = 1: the estimate itself with weight 1 (no inversion round trip)."""
+    objective = np.trace(cov) if criterion == "trace" else np.linalg.slogdet(cov)[1]
+    return FusionResult(weights=np.ones(1), mean=mean, cov=cov, objective=float(objective),
+                        gap=0.0, status="optimal", backend=backend, solve_time=0.0,
+                        iterations=0, method=method, criterion=criterion)
 
 
 def _result(means, Ys, sp, w, status, backend, wall, iters, polish_iters, method):

@@ -8,6 +8,7 @@ polish of `fusion.py` then takes the certificate to machine precision.
 from __future__ import annotations
 
 import time
+import warnings
 
 import cvxpy as cp
 import numpy as np
@@ -32,7 +33,9 @@ def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> Weight
     set_data(prog, Ys, M)
     t0 = time.perf_counter()
     try:
-        prog.problem.solve(solver=solver, **options)
+        with warnings.catch_warnings():  # "may be inaccurate": the status says so, polish fixes
+            warnings.simplefilter("ignore", UserWarning)
+            prog.problem.solve(solver=solver, **options)
     except cp.SolverError as exc:
         raise FusionSolverError(backend, "solver_error", str(exc)) from None
     wall = time.perf_counter() - t0

@@ -1,0 +1,151 @@
+"""Optimality of CI/BCI weights against independent references: grids, a second solver,
+closed forms, and the certificate itself."""
+
+import itertools
+
+import numpy as np
+import pytest
+from conftest import objective, random_instance
+
+import fusion_opt as fo
+
+NS, NODES, CRITERIA = (1, 2, 3, 4, 6), (1, 2, 3, 5, 8), ("trace", "logdet")
+SUITE = [(n, N, c, ill) for n, N, c, ill in itertools.product(NS, NODES, CRITERIA, (0, 1, 2, 3))]
+
+
+def _tolerance(obj: float) -> float:
+    return 1e-7 * max(abs(obj), 1.0)
+
+
+@pytest.mark.parametrize("n,N,criterion,k", SUITE)
+def test_gap_is_tiny_on_random_suite(n, N, criterion, k):
+    """200 instances (half ill-conditioned): the certificate and an independent objective."""
+    rng = np.random.default_rng([n, N, k, len(criterion)])
+    means, covs = random_instance(rng, n, N, ill=k >= 2)
+    r = fo.bci(means, covs, criterion)
+    assert r.status == "optimal"
+    assert 0.0 <= r.gap <= _tolerance(r.objective)
+    assert np.all(r.weights >= 0) and abs(r.weights.sum() - 1.0) <= 4e-16
+    # the reference inverts twice, losing cond(P) * eps on ill-conditioned inputs
+    rel = 1e-6 if k >= 2 else 1e-9
+    assert r.objective == pytest.approx(objective(covs, r.weights, criterion), rel=rel)
+    # never worse than the best single node
+    vertices = (np.trace(covs, axis1=1, axis2=2) if criterion == "trace"
+                else np.linalg.slogdet(covs)[1])
+    assert r.objective <= vertices.min() + rel * abs(vertices.min())
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("n", (1, 2, 3, 4, 6))
+def test_pairwise_matches_100001_point_grid(n, criterion):
+    rng = np.random.default_rng(100 + n)
+    means, covs = random_instance(rng, n, 2)
+    grid = np.linspace(0.0, 1.0, 100_001)
+    f = objective(covs, np.stack([grid, 1 - grid], axis=1), criterion)
+    r = fo.ci(means[0], covs[0], means[1], covs[1], criterion)
+    assert r.objective <= f.min() + 1e-12 * abs(f.min())
+    assert r.objective == pytest.approx(f.min(), rel=1e-6, abs=1e-9)
+
+
+def _simplex_grid(k: int, center=(0.0, 0.0), radius=1.0) -> np.ndarray:
+    """Points (K, 3) of the simplex on the grid of step 1/k (boundaries included), within
+    radius of center in the first two coordinates."""
+    def axis(c):
+        return np.arange(max(0, round((c - radius) * k)), min(k, round((c + radius) * k)) + 1)
+
+    A, B = np.meshgrid(axis(center[0]), axis(center[1]), indexing="ij")
+    A, B = A.ravel(), B.ravel()
+    keep = A + B <= k
+    A, B = A[keep], B[keep]
+    return np.stack([A / k, B / k, (k - A - B) / k], axis=1)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("n", (2, 3, 4))
+def test_three_nodes_match_fine_simplex_grid(n, criterion):
+    """A 1/400 grid on the simplex, then a 1/40000 grid around its best point."""
+    rng = np.random.default_rng(200 + n)
+    means, covs = random_instance(rng, n, 3)
+    coarse = _simplex_grid(400)
+    best = coarse[np.argmin(objective(covs, coarse, criterion))]
+    fine = _simplex_grid(40_000, center=best, radius=2 / 400)
+    f_min = min(objective(covs, fine, criterion).min(), objective(covs, coarse, criterion).min())
+    r = fo.bci(means, covs, criterion)
+    assert r.objective <= f_min + 1e-12 * abs(f_min)
+    assert r.objective == pytest.approx(f_min, rel=1e-6, abs=1e-9)
+
+
+@pytest.mark.parametrize("n,N,criterion", [(n, N, c) for n in (2, 4, 6) for N in (2, 3, 5)
+                                           for c in CRITERIA])
+def test_clarabel_and_scs_agree(n, N, criterion):
+    """The raw solver outputs (no polish) agree to 1e-5; polished ones to 1e-10."""
+    rng = np.random.default_rng(300 + 10 * n + N)
+    means, covs = random_instance(rng, n, N)
+    raw = {b: fo.bci(means, covs, criterion, b, polish=False) for b in ("clarabel", "scs")}
+    assert raw["scs"].objective == pytest.approx(raw["clarabel"].objective, rel=1e-5, abs=1e-7)
+    pol = {b: fo.bci(means, covs, criterion, b) for b in ("clarabel", "scs")}
+    assert pol["scs"].objective == pytest.approx(pol["clarabel"].objective, rel=1e-10, abs=1e-12)
+
+
+def test_scalar_state_puts_all_weight_on_smallest_variance():
+    rng = np.random.default_rng(7)
+    for N in (2, 3, 5, 8):
+        var = rng.uniform(0.1, 10.0, N)
+        r = fo.bci(rng.standard_normal((N, 1)), var[:, None, None], "trace")
+        expected = np.zeros(N)
+        expected[np.argmin(var)] = 1.0
+        np.testing.assert_array_equal(r.weights, expected)
+        assert r.cov[0, 0] == pytest.approx(var.min(), rel=1e-14)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_identical_inputs_return_that_input(criterion):
+    rng = np.random.default_rng(8)
+    means, covs = random_instance(rng, 3, 1)
+    r = fo.bci(np.repeat(means, 4, axis=0), np.repeat(covs, 4, axis=0), criterion)
+    np.testing.assert_allclose(r.mean, means[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.cov, covs[0], rtol=1e-12, atol=1e-14)
+
+
+def test_single_node_is_returned_with_weight_one():
+    rng = np.random.default_rng(9)
+    means, covs = random_instance(rng, 4, 1)
+    r = fo.bci(means, covs)
+    np.testing.assert_array_equal(r.weights, [1.0])
+    np.testing.assert_allclose(r.cov, covs[0], rtol=1e-12)
+    np.testing.assert_allclose(r.mean, means[0], rtol=1e-12)
+    assert r.gap == 0.0
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_certificate_bounds_suboptimality_at_any_weights(criterion):
+    """gap(w) >= f(w) - f* at random weights, and is positive there."""
+    rng = np.random.default_rng(10)
+    for _ in range(20):
+        means, covs = random_instance(rng, 3, 4)
+        f_star = fo.bci(means, covs, criterion).objective
+        w = rng.dirichlet(np.ones(4))
+        g = fo.optimality_gap(covs, w, criterion)
+        assert g >= objective(covs, w, criterion) - f_star - 1e-12
+
+
+def test_fused_mean_and_cov_follow_the_ci_formula():
+    rng = np.random.default_rng(11)
+    means, covs = random_instance(rng, 3, 4)
+    r = fo.bci(means, covs)
+    Y = sum(w * np.linalg.inv(P) for w, P in zip(r.weights, covs, strict=True))
+    P = np.linalg.inv(Y)
+    m = P @ sum(w * np.linalg.solve(P_i, m_i)
+                for w, P_i, m_i in zip(r.weights, covs, means, strict=True))
+    np.testing.assert_allclose(r.cov, P, rtol=1e-10)
+    np.testing.assert_allclose(r.mean, m, rtol=1e-10, atol=1e-12)
+    assert r.objective == pytest.approx(np.trace(P), rel=1e-12)
+
+
+def test_results_are_frozen():
+    rng = np.random.default_rng(12)
+    r = fo.bci(*random_instance(rng, 2, 3))
+    with pytest.raises(AttributeError):
+        r.objective = 0.0
+    with pytest.raises(ValueError):
+        r.weights[0] = 0.5

@@ -1,0 +1,98 @@
+"""Modified batch CI: the paper's special cases, its Theorem for two nodes written out
+independently, and the detection scales checked by hand."""
+
+import math
+
+import numpy as np
+import pytest
+from conftest import random_instance
+from scipy.optimize import minimize_scalar
+
+import fusion_opt as fo
+
+PAPER_P = [0.8, 0.8, 0.9, 0.75, 0.95, 0.9, 0.85]  # Table 2's monitoring nodes
+
+
+def _scales_by_hand(p, chi):
+    """s_i = p_i + (1 - p_i) chi_i prod_{j != i}(p_j + (1 - p_j) chi_j), term by term."""
+    out = []
+    for i in range(len(p)):
+        others = math.prod(p[j] + (1 - p[j]) * chi[j] for j in range(len(p)) if j != i)
+        out.append(p[i] + (1 - p[i]) * chi[i] * others)
+    return out
+
+
+def test_scales_of_the_papers_seven_nodes():
+    chi = [1 / (1 + 0.01)] * 7  # chi^-1 = 1 + dt, dt = 0.01 s in Table 2
+    s = fo.detection_scales(PAPER_P, chi)
+    np.testing.assert_allclose(s, _scales_by_hand(PAPER_P, chi), rtol=1e-15)
+    assert np.all((s > 0) & (s <= 1))
+
+
+def test_scales_of_table_1():
+    """p = 0.9, q = 0.7, chi^-1 = 1.025: s_a = 0.9 + 0.1 chi (0.7 + 0.3 chi) by hand."""
+    chi = 1 / 1.025
+    s = fo.detection_scales([0.9, 0.7], chi)
+    assert s[0] == pytest.approx(0.9 + 0.1 * chi * (0.7 + 0.3 * chi), rel=1e-15)
+    assert s[1] == pytest.approx(0.7 + 0.3 * chi * (0.9 + 0.1 * chi), rel=1e-15)
+    np.testing.assert_allclose(s, [0.99685, 0.99197], atol=5e-6)
+
+
+def test_chi_one_is_plain_bci_exactly():
+    rng = np.random.default_rng(1)
+    means, covs = random_instance(rng, 4, 5)
+    p = rng.uniform(0, 1, 5)
+    for criterion in ("trace", "logdet"):
+        r, b = fo.mbci(means, covs, p, 1.0, criterion), fo.bci(means, covs, criterion)
+        np.testing.assert_array_equal(r.weights, b.weights)
+        np.testing.assert_array_equal(r.mean, b.mean)
+        np.testing.assert_array_equal(r.cov, b.cov)
+        assert r.method == "mbci"
+
+
+def test_equal_p_and_chi_give_bci_weights_and_inflated_cov():
+    rng = np.random.default_rng(2)
+    means, covs = random_instance(rng, 3, 3)
+    p, chi = 0.8, 0.9
+    s = fo.detection_scales(p, chi, n_nodes=3)[0]
+    alpha = p + (1 - p) * chi * (p + (1 - p) * chi) ** 2  # N = 3 written out
+    assert s == pytest.approx(alpha, rel=1e-15)
+    r, b = fo.mbci(means, covs, p, chi), fo.bci(means, covs)
+    np.testing.assert_allclose(r.weights, b.weights, atol=1e-9)
+    np.testing.assert_allclose(r.cov, b.cov / s, rtol=1e-9)
+    np.testing.assert_allclose(r.mean, b.mean, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_two_nodes_follow_the_papers_theorem(seed):
+    """Theorem 4.1: (Phat_a)^-1 = {p + (1-p) chi_a (q + (1-q) chi_b)} (P_a)^-1, likewise b;
+    w minimises tr(Phat_c) (solved here by scipy's bounded scalar minimiser)."""
+    rng = np.random.default_rng(seed)
+    (m_a, m_b), (P_a, P_b) = random_instance(rng, 4, 2)
+    p, q = rng.uniform(0.3, 1.0, 2)
+    chi_a, chi_b = rng.uniform(0.5, 1.0, 2)
+    Ya = (p + (1 - p) * chi_a * (q + (1 - q) * chi_b)) * np.linalg.inv(P_a)
+    Yb = (q + (1 - q) * chi_b * (p + (1 - p) * chi_a)) * np.linalg.inv(P_b)
+
+    def trace_c(w):
+        return np.trace(np.linalg.inv(w * Ya + (1 - w) * Yb))
+
+    w = minimize_scalar(trace_c, bounds=(0, 1), method="bounded",
+                        options={"xatol": 1e-12}).x
+    ends = [0.0, 1.0, w]
+    w = ends[int(np.argmin([trace_c(x) for x in ends]))]
+    P_c = np.linalg.inv(w * Ya + (1 - w) * Yb)
+    m_c = P_c @ (w * Ya @ m_a + (1 - w) * Yb @ m_b)
+    r = fo.mbci(np.stack([m_a, m_b]), np.stack([P_a, P_b]), [p, q], [chi_a, chi_b])
+    assert r.objective == pytest.approx(np.trace(P_c), rel=1e-10)
+    np.testing.assert_allclose(r.weights, [w, 1 - w], atol=1e-5)
+    np.testing.assert_allclose(r.cov, P_c, rtol=1e-5)
+    np.testing.assert_allclose(r.mean, m_c, rtol=1e-5, atol=1e-6)
+
+
+def test_fuse_dispatches_mbci_with_its_arguments():
+    rng = np.random.default_rng(3)
+    means, covs = random_instance(rng, 2, 3)
+    r = fo.fuse(means, covs, method="mbci", p_detect=[0.9, 0.8, 0.7], chi=0.9)
+    d = fo.mbci(means, covs, [0.9, 0.8, 0.7], 0.9)
+    np.testing.assert_array_equal(r.cov, d.cov)

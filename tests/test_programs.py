@@ -1,0 +1,36 @@
+"""The CVXPY programs are built once per shape and re-solved without recompiling."""
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from conftest import random_instance
+from cvxpy.reductions.solvers.solving_chain import SolvingChain
+
+import fusion_opt as fo
+from fusion_opt import programs
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+def test_second_solve_of_same_shape_reuses_compiled_problem(criterion, monkeypatch):
+    programs.clear_cache()
+    calls = []
+    original = SolvingChain.apply
+    monkeypatch.setattr(SolvingChain, "apply",
+                        lambda self, *a, **k: calls.append(1) or original(self, *a, **k))
+    rng = np.random.default_rng(0)
+    fo.bci(*random_instance(rng, 4, 3), criterion)
+    prog = programs.program(4, 3, criterion, cp.CLARABEL)
+    assert len(calls) == 1 and prog.solves == 1
+    r = fo.bci(*random_instance(rng, 4, 3), criterion)  # new data, same shape
+    assert programs.program(4, 3, criterion, cp.CLARABEL) is prog
+    assert len(calls) == 1 and prog.solves == 2  # no new canonicalisation
+    assert r.status == "optimal"
+    assert prog.problem.is_dpp()
+
+
+def test_other_shape_builds_its_own_program():
+    programs.clear_cache()
+    rng = np.random.default_rng(1)
+    fo.bci(*random_instance(rng, 2, 3))
+    fo.bci(*random_instance(rng, 3, 3))
+    assert {k[:3] for k in programs._CACHE} == {(2, 3, "trace"), (3, 3, "trace")}

@@ -1,0 +1,83 @@
+"""Every kind of bad input raises FusionInputError with a message that names it."""
+
+import numpy as np
+import pytest
+from conftest import random_instance
+
+import fusion_opt as fo
+
+rng = np.random.default_rng(0)
+MEANS, COVS = random_instance(rng, 3, 4)
+
+
+def _with(array, index, value):
+    a = array.copy()
+    a[index] = value
+    return a
+
+
+def _asym():
+    c = COVS.copy()
+    c[2, 0, 1] += 0.1
+    return c
+
+
+def _not_pd():
+    c = COVS.copy()
+    c[1] = np.diag([1.0, -1.0, 1.0])
+    return c
+
+
+CASES = [
+    ("shapes", lambda: fo.bci(MEANS[:, :2], COVS), r"covs shape .* does not match"),
+    ("N = 0", lambda: fo.bci(np.zeros((0, 3)), np.zeros((0, 3, 3))), r"N = 0"),
+    ("means ndim", lambda: fo.bci(MEANS[0], COVS), r"means must have shape \(N, n\)"),
+    ("covs not square", lambda: fo.bci(MEANS, COVS[:, :, :2]), r"covs must have shape"),
+    ("nan mean", lambda: fo.bci(_with(MEANS, (1, 2), np.nan), COVS), r"means .*non-finite"),
+    ("inf cov", lambda: fo.bci(MEANS, _with(COVS, (3, 0, 0), np.inf)), r"covs .*non-finite"),
+    ("asymmetric", lambda: fo.bci(MEANS, _asym()), r"covs of node 2 is not symmetric"),
+    ("not PD", lambda: fo.bci(MEANS, _not_pd()), r"covs of node 1 is not positive definite"),
+    ("p > 1", lambda: fo.mbci(MEANS, COVS, [0.5, 1.2, 0.5, 0.5], 0.9),
+     r"p_detect of node 1 must lie in \[0, 1\]"),
+    ("p < 0", lambda: fo.mbci(MEANS, COVS, -0.1, 0.9), r"p_detect of node 0"),
+    ("chi = 0", lambda: fo.mbci(MEANS, COVS, 0.9, [1.0, 1.0, 0.0, 1.0]),
+     r"chi of node 2 must lie in \(0, 1\]"),
+    ("chi > 1", lambda: fo.mbci(MEANS, COVS, 0.9, 1.5), r"chi of node 0"),
+    ("p length", lambda: fo.mbci(MEANS, COVS, [0.9, 0.8], 0.9), r"p_detect must be a scalar"),
+    ("criterion", lambda: fo.bci(MEANS, COVS, criterion="det"), r"criterion must be one of"),
+    ("backend", lambda: fo.bci(MEANS, COVS, backend="gurobi"), r"backend must be one of"),
+    ("method", lambda: fo.fuse(MEANS, COVS, method="magic"), r"method must be one of"),
+    ("ci needs 2", lambda: fo.fuse(MEANS, COVS, method="ci"), r"'ci' fuses 2 nodes"),
+    ("ci pair", lambda: fo.ci(MEANS[0], COVS[0], MEANS[1, :2], COVS[1]), r"m_a has shape"),
+    ("not numbers", lambda: fo.bci([["a", "b"]], COVS[:1, :2, :2]), r"means must be an array"),
+    ("gap weights", lambda: fo.optimality_gap(COVS, [0.5, 0.5], "trace"), r"weights must have"),
+    ("gap simplex", lambda: fo.optimality_gap(COVS, [0.5, 0.5, 0.5, -0.5]), r"sum to 1"),
+]
+
+
+@pytest.mark.parametrize("name,call,message", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_raises_named_error(name, call, message):
+    with pytest.raises(fo.FusionInputError, match=message):
+        call()
+
+
+def test_input_error_is_a_value_error():
+    assert issubclass(fo.FusionInputError, ValueError)
+
+
+def test_tiny_asymmetry_within_tolerance_is_accepted():
+    c = COVS.copy()
+    c[0, 0, 1] *= 1 + 1e-12
+    assert fo.bci(MEANS, c).status == "optimal"
+
+
+def test_solver_failure_names_backend_and_status(monkeypatch):
+    import cvxpy as cp
+
+    def fail(self, *args, **kwargs):
+        raise cp.SolverError("boom")
+
+    monkeypatch.setattr(cp.Problem, "solve", fail)
+    with pytest.raises(fo.FusionSolverError, match=r"'clarabel' failed with status") as err:
+        fo.bci(MEANS, COVS)
+    assert err.value.backend == "clarabel" and err.value.status == "solver_error"
