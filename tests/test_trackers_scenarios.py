@@ -1,0 +1,109 @@
+"""Scenario simulators: DESIGN §3 defaults, truth kinematics, detection and clutter rates."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import binomtest
+
+from trackers import scenarios
+from trackers.scenarios import CLUTTER
+
+
+def test_table1_defaults_are_design_values():
+    c = scenarios.Table1Config()
+    assert (c.dt, c.n_steps, c.q, c.r, c.x0) == (0.025, 960, 0.1, 0.05, (-4.0, -0.2, 1.0, 0.0))
+    assert c.p_detect == (0.9, 0.7) and c.clutter_fraction == 0.5
+    assert c.region == ((-5.0, 5.0), (-4.0, 4.0)) and c.clutter_density == 1 / 80
+    assert (c.n_particles, c.clutter_prior, c.prior_cov, c.resample_threshold) == (20, 0.5, 0.1,
+                                                                                    0.25)
+    starts = [w[:2] for w in c.turn_windows]
+    assert starts == [(1.0, 3.0), (3.5, 5.5), (8.0, 10.5), (14.0, 16.5), (19.0, 21.0),
+                      (21.5, 23.5)]
+    np.testing.assert_allclose([w[2] for w in c.turn_windows],
+                               np.pi * np.array([1 / 4.2, -1 / 4.2, -1 / 5.2, -1 / 5.2,
+                                                 -1 / 4.2, 1 / 4.2]))
+
+
+def test_table1_truth_and_measurements():
+    cfg = scenarios.Table1Config()
+    data = scenarios.simulate_table1(cfg, np.random.default_rng(0))
+    T = cfg.n_steps
+    np.testing.assert_allclose(data.times, cfg.dt * np.arange(1, T + 1))
+    # before the first turn the target moves straight from x0: x(t) = x0 + t v0
+    k = data.times < 1.0 - 1e-9
+    x0 = np.array(cfg.x0)
+    np.testing.assert_allclose(data.truth[k, :2], x0[:2] + data.times[k, None] * x0[2:],
+                               atol=1e-12)
+    # no process noise: turning only rotates the velocity, the speed stays |v0| = 1
+    np.testing.assert_allclose(np.linalg.norm(data.truth[:, 2:], axis=1), 1.0, atol=1e-9)
+    inside = np.zeros(T, bool)
+    for start, end, _ in cfg.turn_windows:
+        inside |= (data.times >= start - 1e-9) & (data.times <= end + 1e-9)
+    assert np.all(data.turn_rates[~inside] == 0.0)
+    for p_d, node in zip(cfg.p_detect, data.nodes, strict=True):
+        assert len(node.scans) == T
+        assert all(len(s) <= 1 for s in node.scans)
+        np.testing.assert_array_equal(np.concatenate(node.scans), node.values)
+        np.testing.assert_allclose(node.time, data.times[node.step])
+        assert binomtest(len(node.values), T, p_d).pvalue > 1e-3
+        clutter = node.origin == CLUTTER
+        assert binomtest(int(clutter.sum()), len(clutter), 0.5).pvalue > 1e-3
+        assert np.all(np.abs(node.values[clutter]) <= [5.0, 4.0])
+        resid = node.values[~clutter] - data.truth[node.step[~clutter], :2]
+        assert np.all(node.origin[~clutter] == 0)
+        assert np.var(resid) == pytest.approx(cfg.r, rel=0.15)
+
+
+def test_table1_nodes_are_independent_streams_and_reproducible():
+    cfg = scenarios.Table1Config(n_steps=100)
+    a = scenarios.simulate_table1(cfg, np.random.default_rng(5))
+    b = scenarios.simulate_table1(cfg, np.random.default_rng(5))
+    np.testing.assert_array_equal(a.nodes[1].values, b.nodes[1].values)
+    # adding a third node does not change the first two nodes' measurements
+    c = scenarios.simulate_table1(dataclasses.replace(cfg, p_detect=(0.9, 0.7, 0.5)),
+                                  np.random.default_rng(5))
+    np.testing.assert_array_equal(a.nodes[0].values, c.nodes[0].values)
+    np.testing.assert_array_equal(a.truth, c.truth)
+
+
+def test_table2_schedule_and_measurements():
+    cfg = scenarios.Table2Config()
+    assert cfg.p_detect == (0.8, 0.8, 0.9, 0.75, 0.95, 0.9, 0.85)
+    assert (cfg.birth_prob, cfg.lifetime_shape, cfg.lifetime_scale) == (0.01, 2.0, 0.5)
+    assert (cfg.clutter_prior, cfg.clutter_density, cfg.clutter_rate) == (0.05, 1 / 16, 0.1)
+    data = scenarios.simulate_table2(cfg, np.random.default_rng(1))
+    t = data.times
+    expected = np.select([t <= 1.0 + 1e-9, t <= 3.0 + 1e-9, t <= 3.5 + 1e-9, t <= 4.0 + 1e-9],
+                         [1, 4, 3, 2], 1)
+    np.testing.assert_array_equal(data.n_alive, expected)
+    # target 4 circles with a = 1 and speed 1: radius 1 around (-1, 0)
+    circ = data.truth[3, data.alive[3], :2]
+    np.testing.assert_allclose(np.linalg.norm(circ - [-1.0, 0.0], axis=1), 1.0, atol=1e-9)
+    assert np.all(np.isnan(data.truth[~data.alive]))
+    for p_d, node in zip(cfg.p_detect, data.nodes, strict=True):
+        target = node.origin != CLUTTER
+        assert binomtest(int(target.sum()), cfg.n_steps, p_d).pvalue > 1e-3
+        assert np.all(data.alive[node.origin[target], node.step[target]])
+        resid = node.values[target] - data.truth[node.origin[target], node.step[target], :2]
+        assert np.std(resid) == pytest.approx(cfg.meas_sd, rel=0.15)
+        assert np.all(np.abs(node.values[~target]) <= 2.0)
+        assert len(node.scans) == cfg.n_steps
+    n_clutter = sum(int(np.sum(n.origin == CLUTTER)) for n in data.nodes)
+    assert abs(n_clutter - 7 * 50) < 4 * np.sqrt(7 * 50)  # Poisson(0.1) per step, 7 nodes
+
+
+def test_config_overrides_and_validation():
+    cfg = dataclasses.replace(scenarios.Table1Config(), dt=0.05, p_detect=(1.0,))
+    assert scenarios.simulate_table1(cfg, np.random.default_rng(0)).nodes[0].values.shape == (
+        960, 2)
+    with pytest.raises(ValueError, match=r"p_detect\[1\] must be a probability"):
+        scenarios.Table1Config(p_detect=(0.9, 1.2))
+    with pytest.raises(ValueError, match="dt must be a finite positive"):
+        scenarios.Table2Config(dt=0.0)
+    with pytest.raises(ValueError, match="region must be"):
+        scenarios.Table1Config(region=((1.0, -1.0), (0.0, 1.0)))
+    with pytest.raises(ValueError, match=r"targets\[0\] must have death > birth"):
+        scenarios.Table2Config(targets=(scenarios.TargetSpec((0, 0, 0, 0), 2.0, 1.0),))
+    with pytest.raises(ValueError, match="rng must be a numpy.random.Generator"):
+        scenarios.simulate_table2(scenarios.Table2Config(), 42)
