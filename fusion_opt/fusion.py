@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from . import criteria
-from .backends import REGISTRY, newton
+from .backends import EXACT, REGISTRY, newton
 from .mbci import detection_scales
 from .results import FusionInputError, FusionResult
 from .scaling import ScaledProblem, scale
@@ -94,7 +94,7 @@ def _fuse_weights(means, covs, criterion, backend, polish, method) -> FusionResu
     t0 = time.perf_counter()
     sol = REGISTRY[backend](sp.Ys, sp.M, criterion)
     w, status, polish_iters = to_simplex(sol.w), sol.status, 0
-    if polish and backend != "newton":
+    if polish and backend not in EXACT:
         w, status, polish_iters = _polish(sp, w, status)
     wall = time.perf_counter() - t0
     return _result(means, Ys, sp, w, status, backend, wall, sol.iterations, polish_iters,

@@ -7,6 +7,7 @@ computes the optimality certificate, the same way for every backend.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,5 +45,17 @@ def _newton(Ys, M, criterion):
     return WeightSolution(sol.w[0], status, int(sol.iterations[0]), time.perf_counter() - t0)
 
 
-REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"), "newton": _newton}
+def _native(module):
+    """The `solve` of a backend module, imported on first use (as the CVXPY ones are)."""
+
+    def solve(Ys, M, criterion):
+        return importlib.import_module(f".{module}", __name__).solve(Ys, M, criterion)
+
+    return solve
+
+
+REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"), "newton": _newton,
+            "closed-form": _native("closed_form"), "slsqp": _native("slsqp")}
+# Backends whose weights are exact to the certificate's rounding level: not polished.
+EXACT = frozenset({"newton", "closed-form"})
 BACKENDS = tuple(REGISTRY)
