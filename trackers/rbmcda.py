@@ -179,6 +179,9 @@ def run(
     cp = _checks.probability("clutter_prior", clutter_prior)
     log_cd = np.log(_checks.positive("clutter_density", clutter_density))
     thr = _checks.probability("resample_threshold", resample_threshold) * N
+    if pb == 0.0 and cp == 0.0:
+        # no target can ever be born, and a measurement may not be clutter: nothing explains it
+        raise ValueError("birth_prob and clutter_prior must not both be 0")
     H, R = model.H, model.R
 
     with np.errstate(divide="ignore"):  # log(0) = -inf removes an option exactly
@@ -217,11 +220,6 @@ def run(
             log_joint[:, 1] = log_prior_b + ll_b
             log_joint[:, 2:] = np.where(parts.alive, ll + log_prior_t[:, None], -np.inf)
             log_pred = logsumexp(log_joint, axis=1)
-            if not np.any(np.isfinite(log_pred)):
-                raise ValueError(
-                    "birth_prob and clutter_prior are both 0: no particle can explain a "
-                    f"measurement of step {k}"
-                )
             logw = logw + log_pred
 
             # draw the association from the optimal importance distribution (inverse CDF)
