@@ -172,6 +172,8 @@ def _paths_figure(data, est, rows, path) -> None:
 def _covnorm_figure(times, est, window, path) -> None:
     fig, axes = new_figure(1, 1, width=6)
     sel = (times >= window[0]) & (times <= window[1])
+    if not sel.any():  # a shortened run ends before the window: show all of it
+        sel[:] = True
     for row in ("RBPF a", "RBPF b", "CI", "modified CI"):
         axes[0].plot(times[sel], np.linalg.norm(est[row][1][sel], 2, axis=(1, 2)), label=row)
     axes[0].set_xlabel("time (s)")
