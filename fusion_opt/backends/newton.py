@@ -26,6 +26,9 @@ TOL = 1e-13
 _PINV_RTOL = 1e-11
 _ARMIJO = 1e-4
 _GROW_RATIO = 0.1
+# A predicted decrease below this times |f| is under the rounding of f: Armijo cannot see it.
+_FLAT = 1e3 * np.finfo(float).eps
+_START_RIDGE = 1e-8
 
 
 @dataclass(frozen=True)
@@ -149,3 +152,130 @@ def _line_search(Ys, M, criterion, w, d, ev, sup, tol):
     w_new[blocked] = 0.0
     sup = sup & ~blocked & (w_new > 0)
     return to_simplex(w_new), sup
+
+
+def solve_one(Ys, M, criterion, tol=TOL, max_iter=None) -> NewtonSolution:
+    """The same method for one problem, Ys (N, n, n) and M (n, n), with few numpy calls.
+
+    A batch of one pays the masking of `solve` on every call; here f, g come from
+    Yf = Ys as (N, n*n) rows (Y(w) = w @ Yf, g = -Yf vec(P M P)), the Hessian on S from one
+    Kronecker product (H = 2 Yf_S (P kron PMP) Yf_S^T for "trace", Yf_S (P kron P) Yf_S^T for
+    "logdet"), and f, g, P of the accepted trial point are reused. It starts at the better of
+    the best vertex and the projected Newton point from uniform weights (where the scaled
+    Y'(w) = I). Nodes enter S several at a time (the `n` most violating); a node at weight 0
+    that the face step would push negative leaves S again before the step is taken.
+    Returns arrays of batch size 1.
+    """
+    N, n = Ys.shape[:2]
+    Yf = Ys.reshape(N, n * n)
+    trace = criterion == "trace"
+    w, (f, g, P, G) = _start(Ys, Yf, M, n, trace)
+    S = w > 0
+    fscale = abs(f) if trace else 1.0
+    rel, it = np.inf, 0
+    for it in range(1, (max_iter or 50 + 4 * N) + 1):
+        gw = g @ w
+        rel = (gw - g.min()) / fscale
+        if rel <= tol:
+            it -= 1
+            break
+        g_face = g[S].min()
+        if gw - g_face <= max(tol * fscale, _GROW_RATIO * (gw - g.min())):
+            out = np.flatnonzero(~S & (g < g_face))
+            S[out[np.argsort(g[out])[:n]]] = True
+        d = _face_step(Yf, P, G, g, w, S, trace)
+        t = 1.0
+        for _ in range(60):  # Armijo along the projected arc: several nodes may leave at once
+            w_try = project_simplex(w + t * d)
+            point = _point(Yf, M, w_try, n, trace)
+            slope = g @ (w_try - w)
+            if point[0] <= f + _ARMIJO * slope or -slope <= _FLAT * max(abs(f), 1.0):
+                break
+            t *= 0.5
+        w, (f, g, P, G) = w_try, point
+        S &= w > 0
+        fscale = abs(f) if trace else 1.0
+    one = np.ones(1)
+    return NewtonSolution(to_simplex(w)[None], rel * one, it * one.astype(int),
+                          (rel <= tol) * one > 0)
+
+
+def _start(Ys, Yf, M, n, trace):
+    """The better (in f) of the best vertex and the projected Newton point from uniform."""
+    N = len(Ys)
+    if trace:
+        f_vertex = np.einsum("ij,nji->n", M, np.linalg.inv(Ys))
+    else:
+        f_vertex = -np.linalg.slogdet(Ys)[1]
+    vertex = np.zeros(N)
+    vertex[np.argmin(f_vertex)] = 1.0
+    u = np.full(N, 1.0 / N)
+    _, g, P, G = _point(Yf, M, u, n, trace)
+    d = _face_step(Yf, P, G, g, u, np.ones(N, dtype=bool), trace, ridge=_START_RIDGE)
+    cand = project_simplex(u + d)
+    pc = _point(Yf, M, cand, n, trace)
+    if pc[0] < f_vertex.min():
+        return cand, pc
+    return vertex, _point(Yf, M, vertex, n, trace)
+
+
+def project_simplex(v):
+    """Euclidean projection of v (N,) onto the simplex (sort-based)."""
+    u = np.sort(v)[::-1]
+    css = np.cumsum(u) - 1.0
+    k = np.flatnonzero(u * np.arange(1, len(v) + 1) > css)[-1]
+    return np.maximum(v - css[k] / (k + 1), 0.0)
+
+
+def _point(Yf, M, w, n, trace):
+    """f, g (N,), P and G (= P M P for "trace", P for "logdet") at w."""
+    Y = (w @ Yf).reshape(n, n)
+    P = np.linalg.inv(Y)
+    if trace:
+        G = P @ M @ P
+        return np.vdot(M, P), -(Yf @ G.ravel()), P, G
+    return -np.linalg.slogdet(Y)[1], -(Yf @ P.ravel()), P, P
+
+
+def _face_step(Yf, P, G, g, w, S, trace, ridge=0.0):
+    """Newton step on the face of S (zeros off S), after removing from S the nodes at
+    weight 0 that it would push negative. ridge > 0 (relative) regularises a singular H
+    instead of taking the minimum-norm step (used for the heuristic start only)."""
+    idx = np.flatnonzero(S)
+    n = len(P)
+    K = (P[:, None, :, None] * G[None, :, None, :]).reshape(n * n, n * n)  # P kron G
+    H = Yf[idx] @ K @ Yf[idx].T
+    if trace:
+        H *= 2.0
+    while True:
+        dk = _reduced_newton(H, g[idx], w[idx], ridge)
+        leave = (w[idx] <= 0) & (dk < 0)
+        if not leave.any():
+            break
+        S[idx[leave]] = False  # some node of S has w > 0 and never leaves: S stays nonempty
+        keep = ~leave
+        idx, H = idx[keep], H[np.ix_(keep, keep)]
+    d = np.zeros_like(w)
+    d[idx] = dk
+    return d
+
+
+def _reduced_newton(H, g, w, ridge):
+    """Newton step d (k,) with sum(d) = 0 for H (k, k), g (k,): d = (u, -sum u) with
+    (Q^T H Q) u = -Q^T g, Q = [I; -1^T]. By Cholesky when Q^T H Q is well conditioned (or
+    ridge > 0), else the minimum-norm step of `_face_newton_step`."""
+    k = len(g)
+    if k == 1:
+        return np.zeros(1)
+    Hr = H[:-1, :-1] - H[:-1, -1:] - H[-1:, :-1] + H[-1, -1]
+    top = Hr.diagonal().max()
+    if ridge:
+        Hr = Hr + ridge * top * np.eye(k - 1)
+    try:
+        piv = np.linalg.cholesky(Hr).diagonal()
+    except np.linalg.LinAlgError:
+        piv = np.zeros(1)
+    if piv.min() ** 2 > _PINV_RTOL * top:
+        u = np.linalg.solve(Hr, g[-1] - g[:-1])
+        return np.append(u, -u.sum())
+    return _face_newton_step(H[None], g[None], np.ones((1, k), dtype=bool), w[None])[0]
