@@ -107,3 +107,16 @@ def test_config_overrides_and_validation():
         scenarios.Table2Config(targets=(scenarios.TargetSpec((0, 0, 0, 0), 2.0, 1.0),))
     with pytest.raises(ValueError, match="rng must be a numpy.random.Generator"):
         scenarios.simulate_table2(scenarios.Table2Config(), 42)
+
+
+def test_table2_targets_from_toml_tables():
+    tables = [{"x0": [0.0, 0.0, 1.0, 0.0], "birth": 0.0, "death": 1.0},
+              {"x0": [1.0, 1.0, 0.0, 1.0], "birth": 0.5, "death": 1.0,
+               "turn_windows": [[0.6, 0.8, 1.0]]}]
+    cfg = scenarios.Table2Config(targets=tables, n_steps=100)
+    assert cfg.targets[1] == scenarios.TargetSpec((1.0, 1.0, 0.0, 1.0), 0.5, 1.0,
+                                                  ((0.6, 0.8, 1.0),))
+    data = scenarios.simulate_table2(cfg, np.random.default_rng(0))
+    np.testing.assert_array_equal(data.n_alive[[0, 49, 50, 99]], [1, 1, 2, 2])
+    with pytest.raises(ValueError, match=r"targets\[0\] is not a valid TargetSpec"):
+        scenarios.Table2Config(targets=[{"x0": [0, 0, 0, 0], "born": 0.0}])

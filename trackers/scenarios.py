@@ -15,6 +15,7 @@ Measurements carry their step, time and true origin: the target's id (0, 1, ...)
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,6 +228,18 @@ class TargetSpec:
 _T1_RATE = _PI / (2 * 0.51)
 
 
+def _target_spec(i: int, tg) -> TargetSpec:
+    if isinstance(tg, TargetSpec):
+        return tg
+    try:
+        spec = TargetSpec(**tg) if isinstance(tg, Mapping) else TargetSpec(*tg)
+    except TypeError as err:
+        raise ValueError(f"targets[{i}] is not a valid TargetSpec: {err}") from None
+    windows = tuple(tuple(float(v) for v in w) for w in spec.turn_windows)
+    return TargetSpec(tuple(spec.x0), float(spec.birth), float(spec.death), windows,
+                      float(spec.turn_rate))
+
+
 @dataclass(frozen=True)
 class Table2Config:
     """Unknown number of targets, seven monitoring nodes (DESIGN §3, Table 2)."""
@@ -263,6 +276,9 @@ class Table2Config:
         _checks.positive("q", self.q)
         _checks.positive("meas_sd", self.meas_sd)
         _check_region("region", self.region)
+        # a study's TOML gives targets as tables (dicts) or arrays; store TargetSpecs
+        targets = tuple(_target_spec(i, tg) for i, tg in enumerate(self.targets))
+        object.__setattr__(self, "targets", targets)
         for i, tg in enumerate(self.targets):
             _checks.finite_array(f"targets[{i}].x0", tg.x0, shape=(4,))
             if not tg.death > tg.birth:
