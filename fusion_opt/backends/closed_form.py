@@ -85,7 +85,7 @@ def solve_weight(a, c, criterion, tol=1e-15):
     # Start at the root of the secant of f' between the end points (exact if f' is linear).
     interior = (d0 < 0) & (d1 > 0)
     w = np.where(interior, -d0 / np.where(interior, d1 - d0, 1.0), np.where(d0 >= 0, 0.0, 1.0))
-    scale = np.abs(objective(w, a, c, criterion)) + 1.0
+    scale = objective(w, a, c, criterion) if criterion == "trace" else 1.0  # as newton's
     iters = 0
     for iters in range(1, _MAX_ITER + 1):  # noqa: B007 (count reported)
         fp, fpp = _derivatives(w, a, c, criterion)
