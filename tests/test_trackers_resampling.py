@@ -25,3 +25,16 @@ def test_zero_weights_never_chosen_and_ess():
     assert resampling.effective_sample_size(np.zeros(7)) == pytest.approx(7.0)
     np.testing.assert_allclose(np.exp(resampling.normalize_log_weights(np.log([1.0, 3.0]))),
                                [0.25, 0.75])
+
+
+def test_logsumexp_matches_scipy():
+    from scipy.special import logsumexp as ref
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(scale=300, size=(6, 5))
+    a[0, 1] = -np.inf
+    a[2] = -np.inf
+    np.testing.assert_allclose(resampling.logsumexp(a, axis=1), ref(a, axis=1), rtol=1e-13)
+    np.testing.assert_allclose(resampling.logsumexp(a, axis=0), ref(a, axis=0), rtol=1e-13)
+    assert resampling.logsumexp(a) == pytest.approx(ref(a), rel=1e-13)
+    assert resampling.logsumexp(np.full(3, -np.inf)) == -np.inf

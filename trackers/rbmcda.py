@@ -48,13 +48,12 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.special import logsumexp
 from scipy.stats import gamma
 
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
-from trackers.resampling import systematic_resample
+from trackers.resampling import logsumexp, systematic_resample
 
 
 class Track(NamedTuple):

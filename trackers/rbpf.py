@@ -29,11 +29,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
 
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
-from trackers.resampling import systematic_resample
+from trackers.resampling import logsumexp, systematic_resample
 
 
 @dataclass(frozen=True)

