@@ -21,6 +21,7 @@ from . import criteria
 from .backends import EXACT, REGISTRY, newton
 from .mbci import detection_scales
 from .results import FusionInputError, FusionResult
+from .rules import RULES
 from .scaling import ScaledProblem, scale
 from .simplex import to_simplex
 from .validation import check_criterion, check_estimates
@@ -150,13 +151,14 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
     return float(sp.unscale_gap(criteria.gap(ev.g, w)))
 
 
-METHODS = {"ci": None, "bci": bci, "mbci": mbci}
+METHODS = {"ci": None, "bci": bci, "mbci": mbci, **RULES}
 
 
 def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **method_args):
     """Fuse estimates means (N, n), covs (N, n, n) with a named rule.
 
-    method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, chi).
+    method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, chi), or a rule of
+    `rules.py`: "naive", "known-cross" (method_args cross), "fast-ci", "ifci", "ici", "ei".
     """
     if method not in METHODS:
         raise FusionInputError(f"method must be one of {tuple(METHODS)}, got {method!r}")
