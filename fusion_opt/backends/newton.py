@@ -189,7 +189,8 @@ def solve_one(Ys, M, criterion, tol=TOL, max_iter=None) -> NewtonSolution:
             w_try = project_simplex(w + t * d)
             point = _point(Yf, M, w_try, n, trace)
             slope = g @ (w_try - w)
-            if point[0] <= f + _ARMIJO * slope or -slope <= _FLAT * max(abs(f), 1.0):
+            # Armijo, up to the rounding of f (near the optimum the decrease is below it).
+            if point[0] <= f + _ARMIJO * min(slope, 0.0) + _FLAT * max(abs(f), 1.0):
                 break
             t *= 0.5
         w, (f, g, P, G) = w_try, point
