@@ -81,6 +81,8 @@ def _run_one_study(name: str, args, run: bool) -> None:
             if run:
                 runner.run_all(module.run_one, config, store, workers=_workers(args),
                                scheduler=args.scheduler, progress=not args.quiet)
+                if hasattr(module, "benchmark"):  # timings, measured once after the runs
+                    module.benchmark(config, out, progress=not args.quiet)
             module.report(config, store.results(config["runs"]), out)
         finally:
             store.close()

@@ -1,0 +1,365 @@
+"""N-node fusion with known truth: MBCI against BCI and the alternatives as N grows.
+
+Static case: N nodes estimate one state (dimension n, truth 0). Node i detects with p_i
+~ U[p_center -+ spread / 2]; it has missed k_i ~ Geometric(p_i) - 1 recent scans, so its
+true and reported covariance is P_i = B_i (chi_true^-1)^k_i (B_i a random base covariance).
+Errors e_i = L_i (sqrt(rho) z_0 + sqrt(1 - rho) z_i), L_i = chol(P_i), z ~ N(0, I): the
+joint covariance S has blocks S_ij = rho L_i L_j^T, S_ii = P_i. A rule with gains K_i
+(sum K_i = I) has fused error sum K_i e_i, true error covariance K S K^T, and reports P.
+Scores over `draws` error draws: MSE, ANEES (with its chi-square band), and exactly:
+tr(K S K^T) and whether P - K S K^T is PSD (consistency).
+
+Dynamic case: N Kalman filters track one common target (the Table 1 model, a = 0), each
+detecting with its own p_i; their errors are correlated through the common prior and
+process noise, and the cross-covariances follow the exact recursion
+C_ij <- (I - K_i H)(A C_ij A^T + Q)(I - K_j H)^T (+ K_i R K_i^T when i = j), which the
+known-cross rule uses. A fusion centre fuses every step.
+
+Scaling: solve time of one fusion against N (n = 4) and against n, per backend, with the
+log-log slope; measured once after the runs (scaling.json).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import fusion_opt as fo
+from trackers import metrics
+from trackers.models import turn_model
+
+from . import stats
+from .plotting import new_figure, save
+
+RULES = {
+    "naive": {"method": "naive"},
+    "BCI trace": {"method": "bci", "criterion": "trace"},
+    "BCI logdet": {"method": "bci", "criterion": "logdet"},
+    "MBCI trace": {"method": "mbci", "criterion": "trace"},
+    "MBCI logdet": {"method": "mbci", "criterion": "logdet"},
+    "fast CI": {"method": "fast-ci"},
+    "IFCI": {"method": "ifci"},
+    "known cross": {"method": "known-cross"},
+}
+OPTIMISED = ("bci", "mbci")
+
+
+# ------------------------------------------------------------------------ static case
+
+def detection_probabilities(cfg: dict, N: int, rng) -> np.ndarray:
+    lo = max(cfg["p_min"], cfg["p_center"] - cfg["spread"] / 2)
+    hi = min(1.0, cfg["p_center"] + cfg["spread"] / 2)
+    return rng.uniform(lo, max(lo, hi), N)
+
+
+def static_case(cfg: dict, rng) -> dict:
+    """covs (N, n, n), roots L (N, n, n), cross S (N, N, n, n), p (N,), misses (N,)."""
+    N, n, rho = cfg["N"], cfg["n"], cfg["rho"]
+    p = detection_probabilities(cfg, N, rng)
+    misses = np.minimum(rng.geometric(p) - 1, cfg["max_misses"])
+    rot = np.linalg.qr(rng.standard_normal((N, n, n)))[0]
+    eig = 10.0 ** rng.uniform(*cfg["base_log10"], size=(N, 1, n))
+    base = (rot * eig) @ np.swapaxes(rot, -1, -2)
+    covs = base * (cfg["chi_inv_true"] ** misses)[:, None, None]
+    covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    L = np.linalg.cholesky(covs)
+    cross = rho * L[:, None] @ np.swapaxes(L, -1, -2)[None, :]
+    cross[np.arange(N), np.arange(N)] = covs
+    return {"covs": covs, "L": L, "cross": cross, "p": p, "misses": misses, "rho": rho}
+
+
+def fuse_rule(name: str, means, covs, *, p, chi, backend, cross=None):
+    """One fusion by rule `name` of RULES (chi = 1 / chi_inv_assumed for MBCI)."""
+    spec = dict(RULES[name])
+    method = spec.pop("method")
+    if method == "mbci":
+        spec.update(p_detect=p, chi=chi)
+    if method == "known-cross":
+        spec["cross"] = cross
+    if method in OPTIMISED:
+        spec["backend"] = backend
+    return fo.fuse(means, covs, method=method, **spec)
+
+
+def gains(name: str, result, case: dict, chi: float) -> np.ndarray:
+    """K (N, n, n) of a rule's fused estimate, from its result (independent of the rule's
+    code: CI family K_i = P w_i s_i Y_i; naive K_i = P Y_i; BLUE K = P H^T S^-1)."""
+    covs = case["covs"]
+    N, n = covs.shape[:2]
+    Ys = np.linalg.inv(covs)
+    P = result.cov
+    if name == "known cross":
+        S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
+        X = np.linalg.solve(S, np.tile(np.eye(n), (N, 1))).reshape(N, n, n)
+        return P @ np.swapaxes(X, -1, -2)
+    if name == "naive":
+        return P @ Ys
+    s = fo.detection_scales(case["p"], chi) if name.startswith("MBCI") else np.ones(N)
+    return P @ (result.weights[:, None, None] * s[:, None, None] * Ys)
+
+
+def static_scores(cfg: dict, rng, backend: str) -> dict:
+    case = static_case(cfg, rng)
+    N, n = cfg["N"], cfg["n"]
+    draws, rho = cfg["draws"], case["rho"]
+    z = rng.standard_normal((draws, N + 1, n))
+    common, own = np.sqrt(rho) * z[:, :1], np.sqrt(1 - rho) * z[:, 1:]
+    e = np.einsum("iab,dib->dia", case["L"], common + own)  # (draws, N, n)
+    S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
+    chi = 1.0 / cfg["chi_inv_assumed"]
+    out = {}
+    for name in RULES:
+        t0 = time.perf_counter()
+        r = fuse_rule(name, np.zeros((N, n)), case["covs"], p=case["p"], chi=chi,
+                      backend=backend, cross=case["cross"])
+        wall = time.perf_counter() - t0
+        K = gains(name, r, case, chi)
+        Kf = np.concatenate(K, axis=1)  # (n, N n)
+        true_cov = Kf @ S @ Kf.T
+        err = np.einsum("iab,dib->da", K, e)
+        margin = np.linalg.eigvalsh(r.cov - true_cov).min() / np.linalg.norm(r.cov, 2)
+        out[name] = {
+            "mse": float(np.mean(np.sum(err**2, axis=1))),
+            "mse_exact": float(np.trace(true_cov)),
+            "anees": metrics.anees(err, np.zeros_like(err),
+                                   np.broadcast_to(r.cov, (draws, n, n))),
+            "consistent": float(margin >= -1e-9),
+            "trace": float(np.trace(r.cov)),
+            "time": wall,
+        }
+    return out
+
+
+# ----------------------------------------------------------------------- dynamic case
+
+def simulate_network(dcfg: dict, N: int, rng) -> dict:
+    """Truth (T, n) and per-node KF means (T, N, n), covs (T, N, n, n), cross-covariances
+    (T, N, N, n, n) and p (N,)."""
+    model = turn_model(0.0, dcfg["q"], dcfg["r"], dcfg["dt"])
+    A, Q, H, R = model.A, model.Q, model.H, model.R
+    n, T = model.n, dcfg["steps"]
+    p = detection_probabilities(dcfg, N, rng)
+    m0, P0 = np.array([0.0, 0.0, 1.0, 0.0]), np.eye(n)
+    x = m0 + np.linalg.cholesky(P0) @ rng.standard_normal(n)
+    m = np.tile(m0, (N, 1))
+    C = np.broadcast_to(P0, (N, N, n, n)).copy()  # the prior error is common to all nodes
+    out = {k: [] for k in ("truth", "means", "covs", "cross")}
+    Lq = np.linalg.cholesky(Q)
+    for _ in range(T):
+        x = A @ x + Lq @ rng.standard_normal(n)
+        m, C = m @ A.T, A @ C @ A.T + Q
+        detected = rng.random(N) < p
+        y = x[:2] + np.sqrt(dcfg["r"]) * rng.standard_normal((N, 2))
+        m, C = _update_network(m, C, y, detected, H, R)
+        for key, val in (("truth", x), ("means", m), ("cross", C)):
+            out[key].append(val.copy())
+        out["covs"].append(C[np.arange(N), np.arange(N)].copy())
+    return {k: np.array(v) for k, v in out.items()} | {"p": p}
+
+
+def _update_network(m, C, y, detected, H, R):
+    """Kalman update of the detecting nodes and the cross-covariance recursion."""
+    N, n = m.shape
+    P = C[np.arange(N), np.arange(N)]
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S) * detected[:, None, None]  # (N, n, d), 0 if missed
+    m = m + np.einsum("iab,ib->ia", K, y - m @ H.T)
+    M = np.eye(n) - K @ H
+    C = M[:, None] @ C @ np.swapaxes(M, -1, -2)[None, :]
+    C[np.arange(N), np.arange(N)] += K @ R @ np.swapaxes(K, -1, -2)
+    return m, 0.5 * (C + np.swapaxes(np.swapaxes(C, 0, 1), -1, -2))
+
+
+def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
+    net = simulate_network(dcfg, N, rng)
+    b = dcfg["burn_in"]
+    truth, means, covs, cross = (net[k][b:] for k in ("truth", "means", "covs", "cross"))
+    chi = 1.0 / dcfg["chi_inv_assumed"]
+    out = {}
+    for name in RULES:
+        t0 = time.perf_counter()
+        fused = [fuse_rule(name, mk, ck, p=net["p"], chi=chi, backend=backend, cross=xk)
+                 for mk, ck, xk in zip(means, covs, cross, strict=True)]
+        wall = (time.perf_counter() - t0) / len(fused)
+        est = np.array([r.mean for r in fused])
+        P = np.array([r.cov for r in fused])
+        out[name] = {"mse": metrics.mse(est, truth), "anees": metrics.anees(est, truth, P),
+                     "trace": float(np.mean(np.trace(P, axis1=1, axis2=2))), "time": wall}
+    return out
+
+
+# ------------------------------------------------------------------------------ runs
+
+def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
+    """Every static sweep point and every dynamic N for one seed; one child seed per sweep
+    (common random numbers across a sweep's values)."""
+    sweeps, dyn = config["sweeps"], config["dynamic"]
+    children = seed.spawn(len(sweeps) + 1)
+    static = {}
+    for (field, values), ss in zip(sweeps.items(), children, strict=False):
+        static[field] = {str(v): static_scores(config["static"] | {field: v},
+                                               np.random.default_rng(ss), config["backend"])
+                         for v in values}
+    dyn_seeds = children[-1].spawn(len(dyn["N"]))
+    dynamic = {str(N): dynamic_scores(dyn, N, np.random.default_rng(ss), config["backend"])
+               for N, ss in zip(dyn["N"], dyn_seeds, strict=True)}
+    return {"static": static, "dynamic": dynamic}
+
+
+# --------------------------------------------------------------------------- scaling
+
+def benchmark(config: dict, out: Path, progress: bool = True) -> None:
+    """Median solve time per backend against N (n = 4) and against n (N = 8), with the
+    log-log slope of each; written to scaling.json (measured once, after the runs)."""
+    sc = config["scaling"]
+    rng = np.random.default_rng(config["seed"])
+    result = {"vs_N": {}, "vs_n": {}, "repeats": sc["repeats"]}
+    for backend in sc["backends"]:
+        result["vs_N"][backend] = {str(N): _time_solve(backend, 4, N, sc["repeats"], rng)
+                                   for N in sc["N"]}
+        result["vs_n"][backend] = {str(n): _time_solve(backend, n, 8, sc["repeats"], rng)
+                                   for n in sc["n"]}
+        if progress:
+            print(f"nnode scaling: {backend} timed", flush=True)
+    (Path(out) / "scaling.json").write_text(json.dumps(result, indent=1))
+
+
+def _time_solve(backend: str, n: int, N: int, repeats: int, rng) -> float:
+    """Median wall time (s) of fo.bci (trace) on random instances, after one warm-up solve
+    (so a cached program is what is timed)."""
+    times = []
+    for k in range(repeats + 1):
+        rot = np.linalg.qr(rng.standard_normal((N, n, n)))[0]
+        covs = (rot * 10.0 ** rng.uniform(-1, 1, (N, 1, n))) @ np.swapaxes(rot, -1, -2)
+        covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+        t0 = time.perf_counter()
+        fo.bci(np.zeros((N, n)), covs, "trace", backend)
+        if k:
+            times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def slope(xs, ys) -> float:
+    """Least-squares slope of log(y) against log(x)."""
+    return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
+
+
+# ---------------------------------------------------------------------------- report
+
+def report(config: dict, results: list[dict], out: Path) -> None:
+    """nnode.md (a table per sweep, dynamic, scaling) and the figures."""
+    out = Path(out)
+    lines = [f"# N-node fusion study ({len(results)} runs, seed {config['seed']}, backend "
+             f"{config['backend']})", "", "Mean [95% interval] over runs. MSE of the fused "
+             "estimate over error draws; ANEES over draws (band for the mean of chi2(n)); "
+             "consistent: share of runs with P - K S K^T PSD (exact).", ""]
+    n, draws = config["static"]["n"], config["static"]["draws"]
+    band = metrics.anees_bounds(n, draws)
+    for field in config["sweeps"]:
+        lines += _sweep_tables(results, field, band)
+    lines += _dynamic_table(config, results)
+    lines += _scaling_table(out)
+    (out / "nnode.md").write_text("\n".join(lines) + "\n")
+    _figures(config, results, out, band)
+
+
+def _summary(results, path, rule, key):
+    """mean_ci of results[...][path...][rule][key] over runs."""
+    vals = []
+    for r in results:
+        node = r
+        for p in path:
+            node = node[p]
+        vals.append(node[rule][key])
+    return stats.mean_ci(vals)
+
+
+def _sweep_tables(results, field, band) -> list[str]:
+    values = list(results[0]["static"][field])
+    head = "| " + field + " | " + " | ".join(RULES) + " |"
+    rule_line = "|---" * (len(RULES) + 1) + "|"
+    lines = [f"## Static sweep over {field}: MSE", "", head, rule_line]
+    for v in values:
+        cells = [stats.fmt(*_summary(results, ("static", field, v), r, "mse"), 3)
+                 for r in RULES]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    lines += ["", f"## Static sweep over {field}: ANEES (band {band[0]:.2f}-{band[1]:.2f}) "
+              "and share consistent", "", head, rule_line]
+    for v in values:
+        cells = [f"{_summary(results, ('static', field, v), r, 'anees')[0]:.2f} / "
+                 f"{_summary(results, ('static', field, v), r, 'consistent')[0]:.2f}"
+                 for r in RULES]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def _dynamic_table(config, results) -> list[str]:
+    d = config["dynamic"]
+    band = metrics.anees_bounds(4, d["steps"] - d["burn_in"])
+    lines = ["## Dynamic: N Kalman filters, fusion every step", "",
+             f"MSE / ANEES (band {band[0]:.2f}-{band[1]:.2f} if the steps were independent; "
+             "they are not, so read it loosely) / time per fusion (ms)", "",
+             "| N | " + " | ".join(RULES) + " |", "|---" * (len(RULES) + 1) + "|"]
+    for N in results[0]["dynamic"]:
+        cells = []
+        for r in RULES:
+            mse = _summary(results, ("dynamic", N), r, "mse")[0]
+            anees = _summary(results, ("dynamic", N), r, "anees")[0]
+            ms = 1e3 * _summary(results, ("dynamic", N), r, "time")[0]
+            cells.append(f"{mse:.4f} / {anees:.2f} / {ms:.2f}")
+        lines.append(f"| {N} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def _scaling(out: Path) -> dict | None:
+    path = out / "scaling.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _scaling_table(out: Path) -> list[str]:
+    sc = _scaling(out)
+    if sc is None:
+        return ["## Scaling", "", "not measured (run the study to measure it)", ""]
+    lines = ["## Scaling: median time per BCI solve (ms), trace criterion", ""]
+    for axis, label in (("vs_N", "N (n = 4)"), ("vs_n", "n (N = 8)")):
+        keys = list(next(iter(sc[axis].values())))
+        lines += ["| backend | " + " | ".join(f"{label.split()[0]} = {k}" for k in keys)
+                  + " | log-log slope |", "|---" * (len(keys) + 2) + "|"]
+        for backend, times in sc[axis].items():
+            s = slope([float(k) for k in times], list(times.values()))
+            lines.append(f"| {backend} | " + " | ".join(f"{1e3 * t:.3g}" for t in
+                                                       times.values()) + f" | {s:.2f} |")
+        lines.append("")
+    return lines
+
+
+def _figures(config, results, out, band) -> None:
+    Ns = list(results[0]["static"]["N"])
+    x = [int(v) for v in Ns]
+    fig, axes = new_figure(1, 2, width=12)
+    for rule in RULES:
+        for ax, key in zip(axes, ("mse", "anees"), strict=True):
+            m = np.array([_summary(results, ("static", "N", v), rule, key) for v in Ns])
+            ax.plot(x, m[:, 0], marker="o", ms=3, label=rule)
+            ax.fill_between(x, m[:, 1], m[:, 2], alpha=0.15)
+    axes[1].axhspan(*band, color="grey", alpha=0.2, label="chi-square 95% band")
+    for ax, label in zip(axes, ("MSE", "ANEES"), strict=True):
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("N (nodes)")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=7)
+    save(fig, out / "nnode_mse_anees_vs_N.png")
+    sc = _scaling(out)
+    if sc is not None:
+        fig, axes = new_figure(1, 1, width=6)
+        for backend, times in sc["vs_N"].items():
+            axes[0].loglog([int(k) for k in times], [1e3 * t for t in times.values()],
+                           marker="o", label=backend)
+        axes[0].set_xlabel("N (nodes), n = 4")
+        axes[0].set_ylabel("median time per solve (ms)")
+        axes[0].legend()
+        save(fig, out / "nnode_time_vs_N.png")

@@ -1,0 +1,112 @@
+"""The N-node study: outputs on a tiny configuration and the properties its rules must
+show against the known truth."""
+
+import numpy as np
+import pytest
+
+from studies import config as configs
+from studies import nnode
+from studies.__main__ import main
+
+TINY = """
+runs = 2
+[static]
+draws = 20
+[sweeps]
+N = [2, 5]
+spread = [0.0, 0.5]
+rho = [0.0, 0.9]
+chi_inv_assumed = [1.0, 2.0]
+[dynamic]
+N = [3]
+steps = 30
+burn_in = 5
+[scaling]
+N = [2, 4]
+n = [2, 3]
+backends = ["newton"]
+repeats = 1
+"""
+
+
+def test_tiny_study_writes_tables_and_figures(tmp_path):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(TINY)
+    assert main(["run", "nnode", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
+                 "--workers", "1"]) == 0
+    folder = tmp_path / "nnode"
+    text = (folder / "nnode.md").read_text()
+    for heading in ("sweep over N", "sweep over rho", "sweep over spread",
+                    "sweep over chi_inv_assumed", "Dynamic", "Scaling"):
+        assert heading in text
+    for name in ("nnode_mse_anees_vs_N.png", "nnode_time_vs_N.png", "scaling.json",
+                 "meta.json"):
+        assert (folder / name).stat().st_size > 0
+
+
+def _static(**over):
+    return configs.load("nnode")["static"] | over
+
+
+def test_naive_equals_known_cross_without_correlation_and_equal_covariances():
+    """rho = 0 and identical covariances (no misses, one base): BLUE is the naive rule."""
+    cfg = _static(rho=0.0, chi_inv_true=1.0, N=5)
+    rng = np.random.default_rng(0)
+    case = nnode.static_case(cfg, rng)
+    case["covs"][:] = case["covs"][0]
+    case["cross"][:] = 0.0
+    case["cross"][np.arange(5), np.arange(5)] = case["covs"]
+    means = rng.standard_normal((5, 4))
+    kw = dict(p=case["p"], chi=1.0, backend="newton", cross=case["cross"])
+    naive = nnode.fuse_rule("naive", means, case["covs"], **kw)
+    known = nnode.fuse_rule("known cross", means, case["covs"], **kw)
+    np.testing.assert_allclose(naive.mean, known.mean, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(naive.cov, known.cov, rtol=1e-10)
+    np.testing.assert_allclose(naive.cov, case["covs"][0] / 5, rtol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_mbci_equals_bci_when_chi_is_one(seed):
+    cfg = _static(chi_inv_assumed=1.0, draws=10)
+    out = nnode.static_scores(cfg, np.random.default_rng(seed), "newton")
+    for crit in ("trace", "logdet"):
+        for key in ("mse", "mse_exact", "anees", "trace"):
+            assert out[f"MBCI {crit}"][key] == out[f"BCI {crit}"][key]
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.95])
+def test_known_cross_error_is_never_above_any_rule(rho):
+    """Exactly (tr K S K^T) on every case, and on the Monte Carlo MSE up to its error."""
+    for seed in range(5):
+        cfg = _static(rho=rho, N=6, draws=400)
+        out = nnode.static_scores(cfg, np.random.default_rng(seed), "newton")
+        best = out["known cross"]
+        for name, r in out.items():
+            assert best["mse_exact"] <= r["mse_exact"] * (1 + 1e-9), name
+            assert best["mse"] <= r["mse"] * 1.25 + 1e-12, name  # 400 draws: MC error
+
+
+def test_ci_rules_are_consistent_and_naive_is_not_under_correlation():
+    cfg = _static(rho=0.8, N=8)
+    out = nnode.static_scores(cfg, np.random.default_rng(3), "newton")
+    for name in ("BCI trace", "BCI logdet", "MBCI trace", "MBCI logdet", "fast CI", "IFCI",
+                 "known cross"):
+        assert out[name]["consistent"] == 1.0, name
+    assert out["naive"]["consistent"] == 0.0
+
+
+def test_network_cross_covariances_match_monte_carlo():
+    """The exact cross-covariance recursion against the sample covariance of the joint
+    errors of two filters over 800 seeded runs (every node detects, so the exact joint
+    covariance is the same in every run)."""
+    dcfg = configs.load("nnode")["dynamic"] | {"steps": 12, "p_center": 1.0, "spread": 0.0}
+    errs = []
+    for seed in range(800):
+        net = nnode.simulate_network(dcfg, 2, np.random.default_rng(seed))
+        errs.append((net["means"][-1] - net["truth"][-1]).ravel())
+    exact = np.concatenate(np.concatenate(net["cross"][-1], axis=1), axis=1)  # (8, 8)
+    sample = np.cov(np.array(errs).T)
+    assert np.linalg.norm(sample - exact) <= 0.15 * np.linalg.norm(exact)
+    # the nodes' errors are strongly correlated through the common prior and process noise
+    corr = exact[0, 4] / np.sqrt(exact[0, 0] * exact[4, 4])
+    assert corr > 0.2
