@@ -78,3 +78,15 @@ def test_diagonalisations_agree():
     assert np.allclose(T @ np.diag(1 / lam) @ T.T, P[0]) and np.allclose(T @ T.T, P[1])
     lam2, _ = closed_form.diagonalise_information(*np.linalg.inv(P))
     assert np.allclose(np.sort(lam), np.sort(lam2))
+
+
+def test_closed_form_on_ill_conditioned_pairs_matches_batched_newton():
+    # Regression: a Cholesky factor of Y_b alone (cond ~1e13) gave negative eigenvalues.
+    rng = np.random.default_rng(3)
+    for k in range(80):
+        crit = ("trace", "logdet")[k % 2]
+        sp = _problem(rng.integers(1 << 30), (4, 6)[k // 2 % 2], 2, "ill-conditioned", crit)
+        f_cf = evaluate(sp.Ys, closed_form.solve(sp.Ys, sp.M, crit).w, crit, sp.M).f
+        w_nt = newton.solve(sp.Ys[None], sp.M[None], crit).w[0]
+        f_nt = evaluate(sp.Ys, w_nt, crit, sp.M).f
+        assert f_cf <= f_nt + 1e-12 * max(abs(f_nt), 1.0)

@@ -39,18 +39,28 @@ _MAX_ITER = 100  # a guard: the bracket halves at least every other step, so <= 
 def diagonalise_information(Ya, Yb):
     """Ya, Yb (..., n, n) SPD -> lam (..., n), T (..., n, n) with T^T Ya T = diag(lam),
     T^T Yb T = I."""
-    Linv = np.linalg.inv(np.linalg.cholesky(Yb))
-    lam, U = np.linalg.eigh(Linv @ Ya @ np.swapaxes(Linv, -1, -2))
-    return lam, np.swapaxes(Linv, -1, -2) @ U
+    nu, V = _split(Ya, Yb)
+    return nu / (1.0 - nu), V / np.sqrt(1.0 - nu)[..., None, :]
 
 
 def diagonalise_covariances(Pa, Pb):
     """Pa, Pb (..., n, n) SPD -> lam (..., n), T (..., n, n) with Pa = T diag(1/lam) T^T,
     Pb = T T^T, i.e. the information form of `diagonalise_information` with T^-T."""
-    L = np.linalg.cholesky(Pb)
+    mu, V = _split(Pa, Pb, inverse=False)
+    return (1.0 - mu) / mu, V * np.sqrt(1.0 - mu)[..., None, :]
+
+
+def _split(A, B, inverse=True):
+    """Diagonalise A and B against their sum S = L L^T, which is well conditioned when one
+    of them is not (a Cholesky factor of B alone can lose every digit): with
+    L^-1 A L^-T = U diag(nu) U^T, nu in (0, 1) and L^-1 B L^-T = U diag(1 - nu) U^T.
+    Returns nu, clipped into [eps, 1 - eps] against rounding, and V = L^-T U (inverse, for
+    informations: V^T A V = diag(nu)) or L U (for covariances: A = V diag(nu) V^T)."""
+    L = np.linalg.cholesky(A + B)
     Linv = np.linalg.inv(L)
-    mu, U = np.linalg.eigh(Linv @ Pa @ np.swapaxes(Linv, -1, -2))
-    return 1.0 / mu, L @ U
+    nu, U = np.linalg.eigh(Linv @ A @ np.swapaxes(Linv, -1, -2))
+    nu = np.clip(nu, _EPS, 1.0 - _EPS)
+    return nu, (np.swapaxes(Linv, -1, -2) if inverse else L) @ U
 
 
 def _derivatives(w, a, c, criterion):
