@@ -26,20 +26,23 @@ from .backends import EXACT, REGISTRY, closed_form, newton
 from .fusion import _check_backend, _polish, information
 from .mbci import detection_scales
 from .results import BatchFusionResult, FusionInputError
+from .rules import RULES
 from .scaling import scale
 from .simplex import to_simplex
 from .validation import check_criterion, check_estimates
 
-METHODS = ("ci", "bci", "mbci")
+METHODS = ("ci", "bci", "mbci", *RULES)
 
 
 def fuse_batch(means, covs, method="bci", criterion="trace", backend="newton", *,
-               p_detect=None, chi=None) -> BatchFusionResult:
+               p_detect=None, chi=None, cross=None) -> BatchFusionResult:
     """Fuse B problems of N estimates each: means (B, N, n), covs (B, N, n, n).
 
     method "ci" (N must be 2), "bci" or "mbci" (with p_detect and chi, each a scalar, one
-    value per node (N,) shared by all problems, or (B, N)). backend as in `fuse`; the
-    default "newton" is the fast exact one here (results match "clarabel").
+    value per node (N,) shared by all problems, or (B, N)), or a rule of `rules.py`:
+    "naive" vectorised, the others problem by problem ("known-cross" with cross
+    (B, N, N, n, n)). backend as in `fuse`; the default "newton" is the fast exact one here
+    (results match "clarabel").
     """
     means, covs = check_estimates(means, covs, batch=True)
     check_criterion(criterion)
@@ -49,6 +52,8 @@ def fuse_batch(means, covs, method="bci", criterion="trace", backend="newton", *
     B, N = means.shape[:2]
     if method == "ci" and N != 2:
         raise FusionInputError(f"method 'ci' fuses 2 nodes, got N = {N}")
+    if method in RULES:
+        return _rule(means, covs, method, criterion, cross)
     if method == "mbci":
         if p_detect is None or chi is None:
             raise FusionInputError("method 'mbci' needs p_detect and chi")
@@ -134,3 +139,28 @@ def _general(means, covs, criterion, backend):
     mean = (cov @ np.einsum("bi,bijk,bik->bj", w, Ys, means)[..., None])[..., 0]
     return (w, mean, cov, sp.unscale_objective(ev.f), sp.unscale_gap(criteria.gap(ev.g, w)),
             status, iters)
+
+
+def _rule(means, covs, method, criterion, cross) -> BatchFusionResult:
+    """A rule of `rules.py`: "naive" at once, P = (sum_i Y_i)^-1; the others per problem."""
+    t0 = time.perf_counter()
+    B, N, n = means.shape
+    if method == "naive":
+        Ys = information(covs)
+        P = np.linalg.inv(Ys.sum(1))
+        gains = P[:, None] @ Ys
+        w = np.trace(gains, axis1=-2, axis2=-1) / n
+        mean = np.einsum("bijk,bik->bj", gains, means)
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        obj = np.trace(P, axis1=-2, axis2=-1) if criterion == "trace" else \
+            np.linalg.slogdet(P)[1]
+        return BatchFusionResult(w, mean, P, obj, np.zeros(B), np.full(B, "closed-form"),
+                                 np.zeros(B), "closed-form", time.perf_counter() - t0,
+                                 method, criterion)
+    extra = [{} if cross is None else {"cross": cross[b]} for b in range(B)]
+    rs = [RULES[method](means[b], covs[b], criterion, **extra[b]) for b in range(B)]
+    return BatchFusionResult(
+        np.array([r.weights for r in rs]), np.array([r.mean for r in rs]),
+        np.array([r.cov for r in rs]), np.array([r.objective for r in rs]), np.zeros(B),
+        np.array([r.status for r in rs]), np.zeros(B), "closed-form",
+        time.perf_counter() - t0, method, criterion)

@@ -44,3 +44,13 @@ def test_batch_bad_input_names_argument():
         fo.fuse_batch(means, covs, "mbci", p_detect=[[0.5, 0.5], [0.5, 2.0]], chi=1.0)
     with pytest.raises(fo.FusionInputError, match="'ci' fuses 2"):
         fo.fuse_batch(np.zeros((1, 3, 2)), np.broadcast_to(np.eye(2), (1, 3, 2, 2)), "ci")
+
+
+@pytest.mark.parametrize("method", ["naive", "ifci"])
+def test_batch_rules_equal_per_problem(method):
+    means, covs = _batch(9, 5, 3, 2)
+    r = fo.fuse_batch(means, covs, method, "logdet")
+    for b in range(5):
+        q = fo.fuse(means[b], covs[b], method=method, criterion="logdet")
+        assert np.allclose(r.mean[b], q.mean) and np.allclose(r.cov[b], q.cov)
+        assert np.isclose(r.objective[b], q.objective) and np.allclose(r.weights[b], q.weights)
