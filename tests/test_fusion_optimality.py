@@ -149,3 +149,25 @@ def test_results_are_frozen():
         r.objective = 0.0
     with pytest.raises(ValueError):
         r.weights[0] = 0.5
+
+
+# Two RBPF covariances of a Table 1 run on which Clarabel with chordal decomposition ended
+# in InsufficientProgress (log-det criterion).
+TABLE1_PAIR = np.array([
+    [[0.009219691608134434, 7.937669689437101e-05, 0.014893297030032787, -5.2653393196455876e-05],
+     [7.937669689437101e-05, 0.009179261371430578, -0.00010383403763244533, 0.015006466464030473],
+     [0.014893297030032787, -0.00010383403763244533, 0.055625282926291646, -8.706124739618359e-05],
+     [-5.2653393196455876e-05, 0.015006466464030473, -8.706124739618359e-05, 0.0560526860576159]],
+    [[0.01027354637943516, 5.359313494769854e-05, 0.018059373853723536, 1.4136747668960579e-05],
+     [5.359313494769854e-05, 0.010322994789870905, 2.675981727783219e-05, 0.018133699888725926],
+     [0.018059373853723536, 2.675981727783219e-05, 0.06180551848421356, 0.00011159696774467528],
+     [1.4136747668960579e-05, 0.018133699888725926, 0.00011159696774467528, 0.06195592325539716]],
+])
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_clarabel_solves_the_table1_pair_that_once_failed(criterion):
+    r = fo.bci(np.zeros((2, 4)), TABLE1_PAIR, criterion, "clarabel", polish=False)
+    grid = np.linspace(0.0, 1.0, 100_001)
+    f = objective(TABLE1_PAIR, np.stack([grid, 1 - grid], axis=1), criterion)
+    assert r.objective == pytest.approx(f.min(), rel=1e-6, abs=1e-8)
