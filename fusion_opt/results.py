@@ -20,10 +20,12 @@ class FusionSolverError(RuntimeError):
     """A weight solver failed. `backend` and `status` say which and how."""
 
     def __init__(self, backend: str, status: str, detail: str = ""):
-        self.backend = backend
-        self.status = status
+        self.backend, self.status, self.detail = backend, status, detail
         msg = f"backend {backend!r} failed with status {status!r}"
         super().__init__(f"{msg}: {detail}" if detail else msg)
+
+    def __reduce__(self):  # picklable, so it crosses a process pool intact
+        return type(self), (self.backend, self.status, self.detail)
 
 
 def _frozen(a) -> np.ndarray:

@@ -81,3 +81,12 @@ def test_solver_failure_names_backend_and_status(monkeypatch):
     with pytest.raises(fo.FusionSolverError, match=r"'clarabel' failed with status") as err:
         fo.bci(MEANS, COVS)
     assert err.value.backend == "clarabel" and err.value.status == "solver_error"
+
+
+def test_solver_error_survives_pickling():
+    """Studies run in process pools: the error must arrive whole, not break the pool."""
+    import pickle
+
+    err = pickle.loads(pickle.dumps(fo.FusionSolverError("scs", "infeasible", "detail")))
+    assert (err.backend, err.status) == ("scs", "infeasible")
+    assert "detail" in str(err)
