@@ -73,28 +73,12 @@ def fuse_batch(means, covs, method="bci", criterion="trace", backend="newton", *
 
 
 def batch_detection_scales(p_detect, chi, B: int, N: int) -> np.ndarray:
-    """MBCI scales s (B, N) (DESIGN §1) for p_detect, chi scalars, (N,) or (B, N)."""
-    p, c = np.asarray(p_detect, dtype=float), np.asarray(chi, dtype=float)
-    if p.ndim <= 1 and c.ndim <= 1:
-        return np.broadcast_to(detection_scales(p, c, n_nodes=N), (B, N))
-    for name, a in (("p_detect", p), ("chi", c)):
-        if a.ndim == 2 and a.shape != (B, N):
-            raise FusionInputError(f"{name} must be a scalar, ({N},) or ({B}, {N}), "
-                                   f"got {a.shape}")
-    # Validate each problem's row as `fuse` would, naming the problem.
-    p, c = np.broadcast_to(p, (B, N)), np.broadcast_to(c, (B, N))
-    ok = np.isfinite(p) & np.isfinite(c) & (p >= 0) & (p <= 1) & (c > 0) & (c <= 1)
-    if not ok.all():
-        b = int(np.argwhere(~ok)[0, 0])
-        try:
-            detection_scales(p[b], c[b])
-        except FusionInputError as exc:
-            raise FusionInputError(f"problem {b}: {exc}") from None
-    t = p + (1.0 - p) * c
-    ones = np.ones((B, 1))
-    before = np.cumprod(np.concatenate((ones, t[:, :-1]), axis=1), axis=1)
-    after = np.cumprod(np.concatenate((ones, t[:, :0:-1]), axis=1), axis=1)[:, ::-1]
-    return p + (1.0 - p) * c * before * after
+    """MBCI scales s (B, N) for p_detect, chi scalars, (N,) or (B, N)."""
+    s = detection_scales(p_detect, chi, n_nodes=N)
+    if s.shape not in ((N,), (B, N)):
+        raise FusionInputError(
+            f"p_detect and chi must be scalars, ({N},) or ({B}, {N}), got {s.shape}")
+    return np.broadcast_to(s, (B, N))
 
 
 def _pairs(means, covs, criterion):

@@ -16,13 +16,15 @@ from .validation import check_detection
 
 
 def detection_scales(p_detect, chi, n_nodes: int | None = None) -> np.ndarray:
-    """s (N,) from p_detect and chi, each a scalar or (N,) (n_nodes fixes N for scalars)."""
-    p_arr, c_arr = np.asarray(p_detect, dtype=float), np.asarray(chi, dtype=float)
+    """s (..., N) from p_detect and chi, each a scalar, (N,) or (..., N) with leading batch
+    axes (n_nodes fixes N when both are scalars; default 1)."""
     if n_nodes is None:
-        n_nodes = max(p_arr.size, c_arr.size) if p_arr.ndim or c_arr.ndim else 1
+        shapes = [np.shape(x) for x in (p_detect, chi) if np.ndim(x)]
+        n_nodes = shapes[0][-1] if shapes else 1
     p, c = check_detection(p_detect, chi, n_nodes)
     t = p + (1.0 - p) * c  # each node's expected factor, > 0 since chi > 0
     # Product over j != i without dividing by t_i: exclusive prefix times exclusive suffix.
-    before = np.concatenate(([1.0], np.cumprod(t[:-1])))
-    after = np.concatenate((np.cumprod(t[::-1][:-1])[::-1], [1.0]))
+    ones = np.ones((*t.shape[:-1], 1))
+    before = np.cumprod(np.concatenate((ones, t[..., :-1]), axis=-1), axis=-1)
+    after = np.cumprod(np.concatenate((ones, t[..., :0:-1]), axis=-1), axis=-1)[..., ::-1]
     return p + (1.0 - p) * c * before * after

@@ -54,7 +54,12 @@ def program(n: int, N: int, criterion: str, solver: str) -> CompiledProgram:
     """The cached program for this shape (built on first use)."""
     key = (n, N, criterion, solver)
     if key not in _CACHE:
-        _CACHE[key] = _build(n, N, criterion)
+        prog = _build(n, N, criterion)
+        # Compile now, on placeholder data: every solve, the first included, then takes
+        # the same parametrised path, so equal data give bit-identical results.
+        set_data(prog, np.broadcast_to(np.eye(n), (N, n, n)), np.eye(n) / n)
+        prog.problem.get_problem_data(solver)
+        _CACHE[key] = prog
     return _CACHE[key]
 
 

@@ -104,26 +104,31 @@ def _cholesky_ok(covs: np.ndarray) -> np.ndarray:
 
 
 def per_node(value, n_nodes: int, name: str) -> np.ndarray:
-    """A scalar or one value per node, as a finite (N,) float array."""
+    """A scalar, one value per node (N,), or per problem and node (..., N), as a finite
+    float array with last axis N."""
     a = _finite_array(value, name)
     if a.ndim == 0:
         return np.full(n_nodes, float(a))
-    if a.shape != (n_nodes,):
+    if a.shape[-1] != n_nodes:
         raise FusionInputError(
             f"{name} must be a scalar or have one value per node ({n_nodes},), got {a.shape}")
     return a
 
 
 def check_detection(p_detect, chi, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """p_detect in [0, 1] and chi in (0, 1], each scalar or (N,)."""
+    """p_detect in [0, 1] and chi in (0, 1], each a scalar, (N,) or (..., N); returned
+    broadcast to one shape."""
     p = per_node(p_detect, n_nodes, "p_detect")
     c = per_node(chi, n_nodes, "chi")
-    bad_p = np.flatnonzero((p < 0) | (p > 1))
-    if bad_p.size:
-        i = bad_p[0]
-        raise FusionInputError(f"p_detect of node {i} must lie in [0, 1], got {p[i]}")
-    bad_c = np.flatnonzero((c <= 0) | (c > 1))
-    if bad_c.size:
-        i = bad_c[0]
-        raise FusionInputError(f"chi of node {i} must lie in (0, 1], got {c[i]}")
+    try:
+        p, c = np.broadcast_arrays(p, c)
+    except ValueError:
+        raise FusionInputError(
+            f"p_detect {p.shape} and chi {c.shape} do not broadcast together") from None
+    for name, a, bad in (("p_detect", p, (p < 0) | (p > 1)), ("chi", c, (c <= 0) | (c > 1))):
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            interval = "[0, 1]" if name == "p_detect" else "(0, 1]"
+            raise FusionInputError(
+                f"{name} of {_where(idx)} must lie in {interval}, got {a[idx]}")
     return p, c

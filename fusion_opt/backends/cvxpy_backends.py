@@ -38,7 +38,10 @@ def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> Weight
     try:
         with warnings.catch_warnings():  # "may be inaccurate": the status says so, polish fixes
             warnings.simplefilter("ignore", UserWarning)
-            prog.problem.solve(solver=solver, **options)
+            # warm_start=False: CVXPY would otherwise update the previous solver in place,
+            # whose result differs in the last bits from a fresh one, so equal data could
+            # give different weights depending on what was solved before.
+            prog.problem.solve(solver=solver, warm_start=False, **options)
     except cp.SolverError as exc:
         raise FusionSolverError(backend, "solver_error", str(exc)) from None
     wall = time.perf_counter() - t0
