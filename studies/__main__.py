@@ -8,15 +8,22 @@
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import sys
-import time
-from pathlib import Path
+import os
 
-from . import config as configs
-from . import meta, runner
-from .store import Store, StoreError
+# Studies parallelise over runs in processes; multi-threaded BLAS inside each process only
+# contends for the same cores (measured: a 32 x 32 eigh took 6 ms instead of 0.07 ms with
+# two threads). Set before numpy is first imported; a user's own setting wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from . import config as configs  # noqa: E402
+from . import meta, runner  # noqa: E402
+from .store import Store, StoreError  # noqa: E402
 
 STUDIES = {
     "table1": "studies.table1",
@@ -93,8 +100,6 @@ def _run_one_study(name: str, args, run: bool) -> None:
 
 
 def _workers(args) -> int:
-    import os
-
     return args.workers if args.workers is not None else (os.cpu_count() or 1)
 
 
