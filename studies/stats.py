@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 from scipy import stats
 
@@ -29,3 +31,20 @@ def paired(a, b, level: float = 0.95) -> dict:
 def fmt(mean: float, low: float, high: float, digits: int = 4) -> str:
     """'0.1234 [0.1200, 0.1268]'."""
     return f"{mean:.{digits}g} [{low:.{digits}g}, {high:.{digits}g}]"
+
+
+def summarise(results: list[dict], rows, columns) -> dict:
+    """{row: {column: mean_ci over runs}} for per-run results[i][row][column]."""
+    return {row: {col: mean_ci([r[row][col] for r in results]) for col in columns}
+            for row in rows}
+
+
+def write_csv(path, summary: dict, columns, paper: dict, paper_columns) -> None:
+    """One line per row: the mean, low and high of each column, then the paper's values."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["row"] + [f"{c}_{s}" for c in columns for s in ("mean", "low", "high")]
+                   + list(paper_columns))
+        for row, cols in summary.items():
+            w.writerow([row] + [v for c in columns for v in cols[c]]
+                       + list(paper.get(row, (None,) * len(paper_columns))))

@@ -9,7 +9,6 @@ ones, and ANEES.
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
@@ -94,25 +93,10 @@ def _scores(means, covs, truth) -> dict:
 
 def report(config: dict, results: list[dict], out: Path) -> None:
     """table1.md, table1.csv and the figures, from the stored runs."""
-    rows = _summary(results)
-    _write_csv(rows, out / "table1.csv")
+    rows = stats.summarise(results, ROWS, COLUMNS)
+    stats.write_csv(out / "table1.csv", rows, COLUMNS, PAPER, ("paper_mse", "paper_mncm"))
     (out / "table1.md").write_text(_markdown(config, rows, results))
     _figures(config, out)
-
-
-def _summary(results) -> dict:
-    return {row: {col: stats.mean_ci([r[row][col] for r in results]) for col in COLUMNS}
-            for row in ROWS}
-
-
-def _write_csv(rows, path) -> None:
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["row"] + [f"{c}_{s}" for c in COLUMNS for s in ("mean", "low", "high")]
-                   + ["paper_mse", "paper_mncm"])
-        for row, cols in rows.items():
-            paper = PAPER.get(row, (None, None))
-            w.writerow([row] + [v for c in COLUMNS for v in cols[c]] + list(paper))
 
 
 def _markdown(config, rows, results) -> str:

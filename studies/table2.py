@@ -17,7 +17,6 @@ the steps.
 
 from __future__ import annotations
 
-import csv
 from collections import defaultdict
 from pathlib import Path
 
@@ -150,15 +149,8 @@ def _matches(means, truth, c):
 # ------------------------------------------------------------------------------ report
 
 def report(config: dict, results: list[dict], out: Path) -> None:
-    rows = {row: {col: stats.mean_ci([r[row][col] for r in results]) for col in COLUMNS}
-            for row in results[0]}
-    with open(out / "table2.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["row"] + [f"{c}_{s}" for c in COLUMNS for s in ("mean", "low", "high")]
-                   + ["paper_mse_e-3", "paper_mncm"])
-        for row, cols in rows.items():
-            w.writerow([row] + [v for c in COLUMNS for v in cols[c]]
-                       + list(PAPER.get(row, (None, None))))
+    rows = stats.summarise(results, results[0], COLUMNS)
+    stats.write_csv(out / "table2.csv", rows, COLUMNS, PAPER, ("paper_mse_e-3", "paper_mncm"))
     (out / "table2.md").write_text(_markdown(config, rows, results))
     _figures(config, out)
 
