@@ -72,7 +72,7 @@ def _config(name: str, args) -> dict:
         config["runs"] = args.runs
     if args.seed is not None:
         config["seed"] = args.seed
-    return config
+    return configs.check_runs(config) if "runs" in config else config
 
 
 def _run_one_study(name: str, args, run: bool) -> None:
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     try:
         for name in GROUPS.get(args.name, (args.name,)):
             _run_one_study(name, args, run=args.command == "run")
-    except StoreError as exc:
+    except (StoreError, configs.ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

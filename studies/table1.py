@@ -17,6 +17,7 @@ import fusion_opt as fo
 from trackers import kalman, metrics, rbpf
 from trackers.scenarios import Table1Config, simulate_table1
 
+from . import config as configs
 from . import stats
 from .plotting import new_figure, save
 
@@ -28,15 +29,7 @@ COLUMNS = ("mse_full", "mncm_full", "mse_pos", "mncm_pos", "anees")
 
 
 def scenario(config: dict) -> Table1Config:
-    return Table1Config(**_tuples(config["scenario"]))
-
-
-def _tuples(x):
-    if isinstance(x, dict):
-        return {k: _tuples(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return tuple(_tuples(v) for v in x)
-    return x
+    return configs.build(Table1Config, config["scenario"], "scenario")
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):

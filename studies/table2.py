@@ -28,9 +28,9 @@ from fusion_opt.association import associate
 from trackers import metrics, rbmcda
 from trackers.scenarios import Table2Config, simulate_table2
 
+from . import config as configs
 from . import stats
 from .plotting import new_figure, save
-from .table1 import _tuples
 
 POSITION = [0, 1]
 COLUMNS = ("mse", "mncm", "ospa", "gospa", "card_err")
@@ -43,7 +43,7 @@ PAPER = {"RBMCDA 1": (0.1430, 0.0578), "RBMCDA 2": (0.4716, 0.0616),
 
 
 def scenario(config: dict) -> Table2Config:
-    return Table2Config(**_tuples(config["scenario"]))
+    return configs.build(Table2Config, config["scenario"], "scenario")
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):

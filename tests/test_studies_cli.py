@@ -100,3 +100,19 @@ def test_damaged_database_is_reported(tiny, tmp_path, capsys):
     rc = main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "x"), "--quiet"])
     assert rc == 2
     assert "not a readable study database" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("text,message", [
+    ("[scenario]\nn_stepz = 5\n", "unknown field(s) ['n_stepz']"),
+    ("runz = 5\n", "unknown field(s) ['runz']"),
+    ("[scenario]\ndt = -1.0\n", "dt"),
+    ("runs = 0\n", "runs must be an integer >= 1"),
+    ("runs = [\n", "--config"),
+])
+def test_bad_configuration_is_reported(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    rc = main(["run", "table1", "--config", str(path), "--out", str(tmp_path), "--quiet",
+               "--workers", "1"])
+    assert rc == 2
+    assert message in capsys.readouterr().err
