@@ -58,7 +58,8 @@ def _native(module):
     return solve
 
 
-REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"), "newton": _newton,
+REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"),
+            "clarabel-direct": _native("clarabel_direct"), "newton": _newton,
             "closed-form": _native("closed_form"), "slsqp": _native("slsqp")}
 # Backends whose weights are exact to the certificate's rounding level: not polished.
 EXACT = frozenset({"newton", "closed-form"})

@@ -15,14 +15,10 @@ import numpy as np
 
 from ..programs import program, set_data
 from ..results import FusionSolverError
-from . import WeightSolution
+from . import WeightSolution, clarabel_direct
 
 SOLVERS = {
-    # Chordal decomposition splits these small dense PSD cones for no gain, and on some
-    # well-conditioned log-det problems it ends in InsufficientProgress (seen in Table 1).
-    "clarabel": (cp.CLARABEL, {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10,
-                               "tol_ktratio": 1e-9, "max_iter": 400,
-                               "chordal_decomposition_enable": False}),
+    "clarabel": (cp.CLARABEL, clarabel_direct.SETTINGS),
     "scs": (cp.SCS, {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000}),
 }
 _OK = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}

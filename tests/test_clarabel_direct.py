@@ -1,0 +1,140 @@
+"""The "clarabel-direct" backend against CVXPY's Clarabel, a brute-force grid for N = 2, and
+its mapping of Clarabel's statuses (the same as the CVXPY backend's)."""
+
+import clarabel
+import numpy as np
+import pytest
+from conftest import objective
+from test_fusion_optimality import TABLE1_PAIR
+
+import fusion_opt as fo
+from fusion_opt.backends import REGISTRY, clarabel_direct
+from fusion_opt.fusion import information
+from fusion_opt.scaling import scale
+from studies.backends import instance
+
+KINDS = ("random", "ill-conditioned")
+
+
+def _covs(seed, n, N, kind):
+    return instance(np.random.default_rng(seed), N, n, kind)
+
+
+def _close(f, f_ref, criterion, rtol=1e-6):
+    """Relative for "trace"; absolute for "logdet" (a relative error of det P)."""
+    scale = abs(f_ref) if criterion == "trace" else 1.0
+    return abs(f - f_ref) <= rtol * scale
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("n", [1, 2, 4, 6])
+def test_matches_cvxpy_clarabel(n, kind, criterion):
+    for N in (2, 3, 5, 8):
+        covs = _covs([n, N, len(kind)], n, N, kind)
+        means = np.zeros((N, n))
+        direct = fo.bci(means, covs, criterion, "clarabel-direct", polish=False)
+        ref = fo.bci(means, covs, criterion, "clarabel", polish=False)
+        assert direct.status == "optimal" and direct.backend == "clarabel-direct"
+        assert _close(direct.objective, ref.objective, criterion), (N, direct.weights)
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("n", [1, 2, 4, 6])
+def test_pair_matches_grid(n, kind, criterion):
+    covs = _covs([n, 7, len(kind)], n, 2, kind)
+    r = fo.bci(np.zeros((2, n)), covs, criterion, "clarabel-direct", polish=False)
+    grid = np.linspace(0.0, 1.0, 100_001)
+    f = objective(covs, np.stack([grid, 1.0 - grid], axis=1), criterion)
+    # the grid point nearest the optimum is within f'' h^2 of it: far below the tolerance
+    assert _close(r.objective, f.min(), criterion)
+    # the reference inverts twice, losing cond(P) * eps on ill-conditioned inputs
+    assert _close(objective(covs, r.weights, criterion), r.objective, criterion)
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+def test_solves_the_table1_pair_that_fails_with_chordal_decomposition(criterion):
+    r = fo.bci(np.zeros((2, 4)), TABLE1_PAIR, criterion, "clarabel-direct", polish=False)
+    grid = np.linspace(0.0, 1.0, 100_001)
+    f = objective(TABLE1_PAIR, np.stack([grid, 1 - grid], axis=1), criterion)
+    assert r.objective == pytest.approx(f.min(), rel=1e-6, abs=1e-8)
+
+
+def test_polished_result_and_batch_equal_newton():
+    covs = _covs(5, 3, 4, "random").reshape(1, 4, 3, 3)
+    means = np.random.default_rng(5).standard_normal((1, 4, 3))
+    r = fo.fuse_batch(means, covs, "bci", "logdet", "clarabel-direct")
+    q = fo.bci(means[0], covs[0], "logdet", "newton")
+    assert r.status[0] == "optimal" and abs(r.objective[0] - q.objective) <= 1e-12
+    assert np.allclose(r.mean[0], q.mean, rtol=1e-8)
+
+
+def test_equal_data_give_identical_weights_whatever_was_solved_before():
+    sps = [scale(information(_covs(s, 3, 5, "random")), "trace")
+           for s in (1, 2)]
+    first = clarabel_direct.solve(sps[0].Ys, sps[0].M, "trace").w
+    clarabel_direct.solve(sps[1].Ys, sps[1].M, "trace")
+    assert np.array_equal(clarabel_direct.solve(sps[0].Ys, sps[0].M, "trace").w, first)
+
+
+def test_svec_order_is_the_upper_triangle_column_by_column():
+    i, j = clarabel_direct.upper(3)
+    assert list(zip(i, j, strict=True)) == [(0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2)]
+    assert list(clarabel_direct.svec_index(i, j)) == list(range(6))
+
+
+_REAL_SOLVER = clarabel.DefaultSolver
+
+
+class _StatusSolver:
+    """clarabel.DefaultSolver whose solution reports a forced status (and maybe NaN x)."""
+
+    status, nan = "Solved", False
+
+    def __init__(self, *args):
+        self._solver = _REAL_SOLVER(*args)
+
+    def solve(self):
+        sol = self._solver.solve()
+        forced = self
+
+        class Solution:
+            status = getattr(clarabel.SolverStatus, forced.status)
+            x = np.full(len(sol.x), np.nan) if forced.nan else sol.x
+
+            def __getattr__(self, name):
+                return getattr(sol, name)
+
+        return Solution()
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+@pytest.mark.parametrize("raw,status", [
+    ("InsufficientProgress", "solver_error"), ("NumericalError", "solver_error"),
+    ("MaxIterations", "user_limit"), ("PrimalInfeasible", "infeasible"),
+    ("AlmostDualInfeasible", "unbounded_inaccurate")])
+def test_failure_statuses_raise_like_the_cvxpy_backend(raw, status, criterion, monkeypatch):
+    sp = scale(information(_covs(3, 2, 3, "random")), criterion)
+    REGISTRY["clarabel"](sp.Ys, sp.M, criterion)  # compile CVXPY's program unpatched
+    monkeypatch.setattr(_StatusSolver, "status", raw)
+    monkeypatch.setattr(clarabel, "DefaultSolver", _StatusSolver)  # CVXPY calls it too
+    errors = {}
+    for backend in ("clarabel-direct", "clarabel"):
+        with pytest.raises(fo.FusionSolverError) as info:
+            REGISTRY[backend](sp.Ys, sp.M, criterion)
+        errors[backend] = info.value
+    assert errors["clarabel-direct"].backend == "clarabel-direct"
+    assert errors["clarabel-direct"].status == errors["clarabel"].status == status
+    assert raw in errors["clarabel-direct"].detail
+
+
+def test_almost_solved_is_inaccurate_and_nan_weights_fail(monkeypatch):
+    sp = scale(information(_covs(4, 2, 3, "random")), "trace")
+    monkeypatch.setattr(clarabel, "DefaultSolver", _StatusSolver)
+    monkeypatch.setattr(_StatusSolver, "status", "AlmostSolved")
+    sol = REGISTRY["clarabel-direct"](sp.Ys, sp.M, "trace")
+    assert sol.status == "optimal_inaccurate" and 0 < sol.solver_time <= sol.solve_time
+    monkeypatch.setattr(_StatusSolver, "nan", True)
+    with pytest.raises(fo.FusionSolverError, match="clarabel-direct"):
+        REGISTRY["clarabel-direct"](sp.Ys, sp.M, "trace")
