@@ -229,22 +229,27 @@ def benchmark(config: dict, out: Path, progress: bool = True) -> None:
 
 def _time_solve(backend: str, n: int, N: int, repeats: int, rng) -> float:
     """Median wall time (s) of fo.bci (trace) on random instances, after one warm-up solve
-    (so a cached program is what is timed)."""
+    (so a cached program is what is timed); NaN if the backend failed on any of them."""
     times = []
     for k in range(repeats + 1):
         rot = np.linalg.qr(rng.standard_normal((N, n, n)))[0]
         covs = (rot * 10.0 ** rng.uniform(-1, 1, (N, 1, n))) @ np.swapaxes(rot, -1, -2)
         covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
         t0 = time.perf_counter()
-        fo.bci(np.zeros((N, n)), covs, "trace", backend)
+        try:
+            fo.bci(np.zeros((N, n)), covs, "trace", backend)
+        except fo.FusionSolverError:
+            return float("nan")
         if k:
             times.append(time.perf_counter() - t0)
     return float(np.median(times))
 
 
 def slope(xs, ys) -> float:
-    """Least-squares slope of log(y) against log(x)."""
-    return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
+    """Least-squares slope of log(y) against log(x), over the points that are not NaN."""
+    x, y = np.asarray(xs, float), np.asarray(ys, float)
+    ok = np.isfinite(y)
+    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0]) if ok.sum() >= 2 else np.nan
 
 
 # ---------------------------------------------------------------------------- report
