@@ -3,8 +3,10 @@
 Static case: N nodes estimate one state (dimension n, truth 0). Node i detects with p_i
 ~ U[p_center -+ spread / 2]; it has missed k_i ~ Geometric(p_i) - 1 recent scans, so its
 true and reported covariance is P_i = B_i (chi_true^-1)^k_i (B_i a random base covariance).
-Errors e_i = L_i (sqrt(rho) z_0 + sqrt(1 - rho) z_i), L_i = chol(P_i), z ~ N(0, I): the
-joint covariance S has blocks S_ij = rho L_i L_j^T, S_ii = P_i. A rule with gains K_i
+Errors e_i = c + u_i share one common error c ~ N(0, C), C = rho lam I with lam the
+smallest eigenvalue of all P_i, and add independent u_i ~ N(0, P_i - C): the joint
+covariance S has blocks S_ij = C, S_ii = P_i (rho = 0: independent; rho = 1: the largest
+common error every node can hold; no rule can remove c). A rule with gains K_i
 (sum K_i = I) has fused error sum K_i e_i, true error covariance K S K^T, and reports P.
 Scores over `draws` error draws: MSE, ANEES (with its chi-square band), and exactly:
 tr(K S K^T) and whether P - K S K^T is PSD (consistency).
@@ -56,7 +58,8 @@ def detection_probabilities(cfg: dict, N: int, rng) -> np.ndarray:
 
 
 def static_case(cfg: dict, rng) -> dict:
-    """covs (N, n, n), roots L (N, n, n), cross S (N, N, n, n), p (N,), misses (N,)."""
+    """covs (N, n, n), cross S (N, N, n, n), the square roots of the common and own error
+    covariances (n, n) and (N, n, n), p (N,), misses (N,)."""
     N, n, rho = cfg["N"], cfg["n"], cfg["rho"]
     p = detection_probabilities(cfg, N, rng)
     misses = np.minimum(rng.geometric(p) - 1, cfg["max_misses"])
@@ -65,10 +68,26 @@ def static_case(cfg: dict, rng) -> dict:
     base = (rot * eig) @ np.swapaxes(rot, -1, -2)
     covs = base * (cfg["chi_inv_true"] ** misses)[:, None, None]
     covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
-    L = np.linalg.cholesky(covs)
-    cross = rho * L[:, None] @ np.swapaxes(L, -1, -2)[None, :]
+    common = rho * np.linalg.eigvalsh(covs).min() * np.eye(n)
+    cross = np.broadcast_to(common, (N, N, n, n)).copy()
     cross[np.arange(N), np.arange(N)] = covs
-    return {"covs": covs, "L": L, "cross": cross, "p": p, "misses": misses, "rho": rho}
+    return {"covs": covs, "cross": cross, "common_root": np.sqrt(common),
+            "own_root": _psd_sqrt(covs - common), "p": p, "misses": misses}
+
+
+def _psd_sqrt(A: np.ndarray) -> np.ndarray:
+    """Symmetric square roots of PSD matrices (..., n, n) (Cholesky fails on singular
+    ones, as P_i - C is at rho = 1)."""
+    lam, V = np.linalg.eigh(A)
+    return (V * np.sqrt(np.maximum(lam, 0.0))[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
+def draw_errors(case: dict, draws: int, rng) -> np.ndarray:
+    """Node errors (draws, N, n) with the joint covariance of the case."""
+    N, n = case["covs"].shape[:2]
+    z = rng.standard_normal((draws, N + 1, n))
+    return (np.einsum("ab,db->da", case["common_root"], z[:, 0])[:, None, :]
+            + np.einsum("iab,dib->dia", case["own_root"], z[:, 1:]))
 
 
 def fuse_rule(name: str, means, covs, *, p, chi, backend, cross=None):
@@ -104,10 +123,8 @@ def gains(name: str, result, case: dict, chi: float) -> np.ndarray:
 def static_scores(cfg: dict, rng, backend: str) -> dict:
     case = static_case(cfg, rng)
     N, n = cfg["N"], cfg["n"]
-    draws, rho = cfg["draws"], case["rho"]
-    z = rng.standard_normal((draws, N + 1, n))
-    common, own = np.sqrt(rho) * z[:, :1], np.sqrt(1 - rho) * z[:, 1:]
-    e = np.einsum("iab,dib->dia", case["L"], common + own)  # (draws, N, n)
+    draws = cfg["draws"]
+    e = draw_errors(case, draws, rng)
     S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
     chi = 1.0 / cfg["chi_inv_assumed"]
     out = {}

@@ -110,3 +110,14 @@ def test_network_cross_covariances_match_monte_carlo():
     # the nodes' errors are strongly correlated through the common prior and process noise
     corr = exact[0, 4] / np.sqrt(exact[0, 0] * exact[4, 4])
     assert corr > 0.2
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.6, 1.0])
+def test_static_errors_have_the_joint_covariance(rho):
+    cfg = _static(rho=rho, N=3, n=2)
+    rng = np.random.default_rng(11)
+    case = nnode.static_case(cfg, rng)
+    e = nnode.draw_errors(case, 40_000, rng).reshape(40_000, -1)
+    S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
+    assert np.linalg.eigvalsh(S).min() >= -1e-12 * np.linalg.norm(S, 2)  # a valid joint
+    np.testing.assert_allclose(np.cov(e.T), S, atol=0.05 * np.abs(S).max())
