@@ -58,21 +58,28 @@ def detection_probabilities(cfg: dict, N: int, rng) -> np.ndarray:
 
 
 def static_case(cfg: dict, rng) -> dict:
-    """covs (N, n, n), cross S (N, N, n, n), the square roots of the common and own error
-    covariances (n, n) and (N, n, n), p (N,), misses (N,)."""
+    """covs (N, n, n) as reported, true_covs (N, n, n), the true joint cross (N, N, n, n),
+    the square roots of the common and own error covariances (n, n) and (N, n, n),
+    p (N,), misses (N,). A node reports the growth of a `reported_share` of its misses
+    (1: its covariance is right; 0: it reports its covariance as of its last detection)."""
     N, n, rho = cfg["N"], cfg["n"], cfg["rho"]
     p = detection_probabilities(cfg, N, rng)
     misses = np.minimum(rng.geometric(p) - 1, cfg["max_misses"])
     rot = np.linalg.qr(rng.standard_normal((N, n, n)))[0]
     eig = 10.0 ** rng.uniform(*cfg["base_log10"], size=(N, 1, n))
     base = (rot * eig) @ np.swapaxes(rot, -1, -2)
-    covs = base * (cfg["chi_inv_true"] ** misses)[:, None, None]
-    covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
-    common = rho * np.linalg.eigvalsh(covs).min() * np.eye(n)
+    base = 0.5 * (base + np.swapaxes(base, -1, -2))
+
+    def grown(k):
+        return base * (cfg["chi_inv_true"] ** k)[:, None, None]
+
+    true_covs = grown(misses)
+    common = rho * np.linalg.eigvalsh(true_covs).min() * np.eye(n)
     cross = np.broadcast_to(common, (N, N, n, n)).copy()
-    cross[np.arange(N), np.arange(N)] = covs
-    return {"covs": covs, "cross": cross, "common_root": np.sqrt(common),
-            "own_root": _psd_sqrt(covs - common), "p": p, "misses": misses}
+    cross[np.arange(N), np.arange(N)] = true_covs
+    return {"covs": grown(cfg["reported_share"] * misses), "true_covs": true_covs,
+            "cross": cross, "common_root": np.sqrt(common),
+            "own_root": _psd_sqrt(true_covs - common), "p": p, "misses": misses}
 
 
 def _psd_sqrt(A: np.ndarray) -> np.ndarray:
@@ -130,8 +137,10 @@ def static_scores(cfg: dict, rng, backend: str) -> dict:
     out = {}
     for name in RULES:
         t0 = time.perf_counter()
-        r = fuse_rule(name, np.zeros((N, n)), case["covs"], p=case["p"], chi=chi,
-                      backend=backend, cross=case["cross"])
+        # the known-cross optimum is told the truth: the true joint covariance
+        covs = case["true_covs"] if name == "known cross" else case["covs"]
+        r = fuse_rule(name, np.zeros((N, n)), covs, p=case["p"], chi=chi, backend=backend,
+                      cross=case["cross"])
         wall = time.perf_counter() - t0
         K = gains(name, r, case, chi)
         Kf = np.concatenate(K, axis=1)  # (n, N n)
@@ -216,14 +225,23 @@ def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
     sweeps, dyn = config["sweeps"], config["dynamic"]
     children = seed.spawn(len(sweeps) + 1)
     static = {}
-    for (field, values), ss in zip(sweeps.items(), children, strict=False):
-        static[field] = {str(v): static_scores(config["static"] | {field: v},
-                                               np.random.default_rng(ss), config["backend"])
-                         for v in values}
+    for (name, spec), ss in zip(sweeps.items(), children, strict=False):
+        field, values, fixed = sweep_spec(name, spec)
+        static[name] = {str(v): static_scores(config["static"] | fixed | {field: v},
+                                              np.random.default_rng(ss), config["backend"])
+                        for v in values}
     dyn_seeds = children[-1].spawn(len(dyn["N"]))
     dynamic = {str(N): dynamic_scores(dyn, N, np.random.default_rng(ss), config["backend"])
                for N, ss in zip(dyn["N"], dyn_seeds, strict=True)}
     return {"static": static, "dynamic": dynamic}
+
+
+def sweep_spec(name: str, spec) -> tuple[str, list, dict]:
+    """(field, values, fixed settings) of a sweep: a list of values of the field `name`,
+    or a table {field, values, fixed} (a sweep of one field with others held apart)."""
+    if isinstance(spec, list):
+        return name, spec, {}
+    return spec["field"], spec["values"], spec.get("fixed", {})
 
 
 # --------------------------------------------------------------------------- scaling
@@ -281,7 +299,7 @@ def report(config: dict, results: list[dict], out: Path) -> None:
     n, draws = config["static"]["n"], config["static"]["draws"]
     band = metrics.anees_bounds(n, draws)
     for field in config["sweeps"]:
-        lines += _sweep_tables(results, field, band)
+        lines += _sweep_tables(results, field, config["sweeps"][field], band)
     lines += _dynamic_table(config, results)
     lines += _scaling_table(out)
     (out / "nnode.md").write_text("\n".join(lines) + "\n")
@@ -299,20 +317,22 @@ def _summary(results, path, rule, key):
     return stats.mean_ci(vals)
 
 
-def _sweep_tables(results, field, band) -> list[str]:
-    values = list(results[0]["static"][field])
+def _sweep_tables(results, name, spec, band) -> list[str]:
+    field, _, fixed = sweep_spec(name, spec)
+    values = list(results[0]["static"][name])
     head = "| " + field + " | " + " | ".join(RULES) + " |"
     rule_line = "|---" * (len(RULES) + 1) + "|"
-    lines = [f"## Static sweep over {field}: MSE", "", head, rule_line]
+    held = f" (with {', '.join(f'{k} = {v}' for k, v in fixed.items())})" if fixed else ""
+    lines = [f"## Static sweep over {field}{held}: MSE", "", head, rule_line]
     for v in values:
-        cells = [stats.fmt(*_summary(results, ("static", field, v), r, "mse"), 3)
+        cells = [stats.fmt(*_summary(results, ("static", name, v), r, "mse"), 3)
                  for r in RULES]
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    lines += ["", f"## Static sweep over {field}: ANEES (band {band[0]:.2f}-{band[1]:.2f}) "
-              "and share consistent", "", head, rule_line]
+    lines += ["", f"## Static sweep over {field}{held}: ANEES (band {band[0]:.2f}-"
+              f"{band[1]:.2f}) and share consistent", "", head, rule_line]
     for v in values:
-        cells = [f"{_summary(results, ('static', field, v), r, 'anees')[0]:.2f} / "
-                 f"{_summary(results, ('static', field, v), r, 'consistent')[0]:.2f}"
+        cells = [f"{_summary(results, ('static', name, v), r, 'anees')[0]:.2f} / "
+                 f"{_summary(results, ('static', name, v), r, 'consistent')[0]:.2f}"
                  for r in RULES]
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return lines + [""]
