@@ -335,6 +335,17 @@ def _sweep_tables(results, name, spec, band) -> list[str]:
                  f"{_summary(results, ('static', name, v), r, 'consistent')[0]:.2f}"
                  for r in RULES]
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    lines += ["", f"MBCI minus BCI, paired over runs (MSE; negative: MBCI better){held}:", "",
+              f"| {field} | trace: mean [95%] | share MBCI lower | logdet: mean [95%] "
+              "| share MBCI lower |", "|---|---|---|---|---|"]
+    for v in values:
+        cells = []
+        for crit in ("trace", "logdet"):
+            d = stats.paired(*([r["static"][name][v][f"{rule} {crit}"]["mse"] for r in results]
+                               for rule in ("MBCI", "BCI")))
+            cells += [stats.fmt(d["mean_diff"], d["low"], d["high"], 3),
+                      f"{d['share_better']:.2f}"]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return lines + [""]
 
 
