@@ -78,12 +78,6 @@ def test_equal_data_give_identical_weights_whatever_was_solved_before():
     assert np.array_equal(clarabel_direct.solve(sps[0].Ys, sps[0].M, "trace").w, first)
 
 
-def test_svec_order_is_the_upper_triangle_column_by_column():
-    i, j = clarabel_direct.upper(3)
-    assert list(zip(i, j, strict=True)) == [(0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2)]
-    assert list(clarabel_direct.svec_index(i, j)) == list(range(6))
-
-
 _REAL_SOLVER = clarabel.DefaultSolver
 
 

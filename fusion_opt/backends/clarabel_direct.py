@@ -12,8 +12,8 @@ trace weight M = B B^T (n, n), B its Cholesky factor) with m = n(n+1)/2:
              (CVXPY's log_det: the PSD block gives det Y >= prod Z_ii, with equality at the
              scaled LDL factor of Y, so max sum t = log det Y(w))
 
-K = {0}^1 x R+^N x S+^2n (x K_exp^n). Clarabel's PSD triangle cone holds svec(X): the upper
-triangle column by column, (0,0), (0,1), (1,1), (0,2), ..., off-diagonals times sqrt(2).
+K = {0}^1 x R+^N x S+^2n (x K_exp^n). Clarabel's PSD triangle cone holds svec(X) of
+`fusion_opt/svec.py`: the upper triangle column by column, off-diagonals times sqrt(2).
 Only the columns of w in A (the Y(w) block) and the B block of b depend on the data: the
 sparsity pattern is built once per (n, N, criterion) and a solve only refills values. Each
 solve builds a fresh solver (no data update of a previous one), so equal data give
@@ -32,6 +32,9 @@ import numpy as np
 from scipy import sparse
 
 from ..results import FusionSolverError
+from ..svec import index as svec_index
+from ..svec import scale as svec_scale
+from ..svec import upper
 from . import WeightSolution
 
 BACKEND = "clarabel-direct"
@@ -46,17 +49,6 @@ STATUS = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate",
           "MaxIterations": "user_limit", "MaxTime": "user_limit"}
 _OK = ("optimal", "optimal_inaccurate")
 _SQRT2 = np.sqrt(2.0)
-
-
-def upper(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rows i and columns j (i <= j) of the upper triangle of an (n, n) matrix in svec order."""
-    j, i = np.tril_indices(n)
-    return i, j
-
-
-def svec_index(i, j):
-    """Position of entry (i, j), i <= j, in svec order."""
-    return j * (j + 1) // 2 + i
 
 
 @dataclass(frozen=True)
@@ -107,7 +99,7 @@ def template(n: int, N: int, criterion: str) -> Template:
     psd = 1 + N  # first row of the PSD cone
     n_row = psd + n * (2 * n + 1) + (0 if trace else 3 * n)
     ui, uj = upper(n)
-    off = np.where(ui < uj, _SQRT2, 1.0)  # the svec scaling of each upper-triangle entry
+    off = svec_scale(n)
     A = _Triplets()
     A.add(0, np.arange(N), 1.0)  # s = 1 - sum w in {0}
     A.add(1 + np.arange(N), np.arange(N), -1.0)  # s = w >= 0
@@ -153,7 +145,7 @@ def problem_data(Ys: np.ndarray, M: np.ndarray, criterion: str):
     ui, uj = upper(n)
     data = tpl.data.copy()
     # s = svec(X) = b - A x: the Y(w) entries enter A with the opposite sign.
-    data[tpl.y_pos] = (Ys[:, ui, uj] * np.where(ui < uj, -_SQRT2, -1.0)).ravel()
+    data[tpl.y_pos] = (Ys[:, ui, uj] * -svec_scale(n)).ravel()
     A = sparse.csc_matrix((data, tpl.indices, tpl.indptr), shape=tpl.shape)
     b = tpl.b
     if tpl.b_rows is not None:

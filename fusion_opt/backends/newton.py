@@ -1,7 +1,8 @@
-"""Active-set Newton method on the weight simplex: exact, native and batched.
+"""Newton methods on the weight simplex: exact and native, batched (`solve`) and for one
+problem (`solve_one`, sequential quadratic programming; see its docstring).
 
-Minimises a CI criterion f(w) over {w >= 0, sum w = 1} with the analytic gradient g and
-Hessian H of `criteria.py`. It starts at the best single node (or a given start) and works
+`solve` minimises a CI criterion f(w) over {w >= 0, sum w = 1} with the analytic gradient g
+and Hessian H of `criteria.py`. It starts at the best single node (or a given start) and works
 on the support S (the free weights): the step is the Newton step of the face,
 d = -pinv(Z H Z) Z g with Z the projector onto {d : sum d = 0, d_i = 0 off S}; the
 pseudo-inverse (by eigh) keeps it exact when H is singular (N > n(n+1)/2, where the weights
@@ -18,8 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lapack
+from scipy.optimize import nnls
 
+from .. import svec
 from ..criteria import evaluate, gap
+from ..results import FusionSolverError
 from ..simplex import to_simplex
 
 TOL = 1e-13
@@ -28,7 +33,12 @@ _ARMIJO = 1e-4
 _GROW_RATIO = 0.1
 # A predicted decrease below this times |f| is under the rounding of f: Armijo cannot see it.
 _FLAT = 1e3 * np.finfo(float).eps
-_START_RIDGE = 1e-8
+# sqrt of the model's curvature along the whitened gradient, relative to f's own (1).
+_RHO = 0.1
+# Wolfe's optimality test of a face, relative to the largest |d_i . p|; and from how many
+# nodes on the face is tried before NNLS (measured faster from 32 to 64 nodes, slower at 16).
+_WOLFE_RTOL = 1e-12
+_FACE_MIN_NODES = 32
 
 
 @dataclass(frozen=True)
@@ -154,129 +164,155 @@ def _line_search(Ys, M, criterion, w, d, ev, sup, tol):
     return to_simplex(w_new), sup
 
 
-def solve_one(Ys, M, criterion, tol=TOL, max_iter=None) -> NewtonSolution:
-    """The same method for one problem, Ys (N, n, n) and M (n, n), with few numpy calls.
+def solve_one(Ys, M, criterion, w0=None, tol=TOL, max_iter=None) -> NewtonSolution:
+    """One problem, Ys (N, n, n) and M (n, n), by sequential quadratic programming: Newton's
+    method with the simplex kept in the subproblem. Returns arrays of batch size 1.
 
-    A batch of one pays the masking of `solve` on every call; here f, g come from
-    Yf = Ys as (N, n*n) rows (Y(w) = w @ Yf, g = -Yf vec(P M P)), the Hessian on S from one
-    Kronecker product (H = 2 Yf_S (P kron PMP) Yf_S^T for "trace", Yf_S (P kron P) Yf_S^T for
-    "logdet"), and f, g, P of the accepted trial point are reused. It starts at the better of
-    the best vertex and the projected Newton point from uniform weights (where the scaled
-    Y'(w) = I). Nodes enter S several at a time (the `n` most violating); a node at weight 0
-    that the face step would push negative leaves S again before the step is taken.
-    Returns arrays of batch size 1.
+    At w, with Y(w) = U^T U, whiten every node: z_i = svec(R^T Y_i R) * s (N, m), where
+    R = U^-1 and s = 1 for "logdet", and for "trace" R = U^-1 V and s_kl = sqrt(mu_k + mu_l)
+    with U^-T M U^-1 = V diag(mu) V^T. Then H_ij = z_i . z_j and g_i = -zeta . z_i
+    (zeta = svec(I) for "logdet", svec(diag(sqrt(mu / 2))) for "trace"), and R^T Y(w) R = I
+    puts z(w) = c zeta (c = 1, resp. 2), so the quadratic model of f about w is
+
+        f(lam) ~ f(w) + |W (z(lam) - z(w)) - zeta / rho|^2 / 2 + const,   z(lam) = sum lam_i z_i,
+
+    with W = I - (1 - rho) u u^T, u = zeta / |zeta|. rho = 1 would be Newton's model of f;
+    f is homogeneous in Y (f(tY) = f/t, resp. f - n log t), and along u, where that
+    nonlinearity lives, Newton's model is poor far from the optimum: rho = 0.1 keeps 1% of its
+    curvature there (the Hessian of h = -1/f, resp. -exp(-f/n), has none). At the optimum u is
+    orthogonal to the face, so the local convergence stays quadratic. The model's minimiser
+    over the simplex is the point of the polytope conv{W z_i} nearest to c rho zeta + zeta/rho
+    (`_nearest`); its support has at most m + 1 nodes whatever N. w moves towards it with
+    Armijo backtracking on f, and it stops on the certificate as `solve` does. Starts at w0 or
+    uniform weights (where the scaled Y'(w) = I).
     """
     N, n = Ys.shape[:2]
-    Yf = Ys.reshape(N, n * n)
-    trace = criterion == "trace"
-    w, (f, g, P, G) = _start(Ys, Yf, M, n, trace)
-    S = w > 0
-    fscale = abs(f) if trace else 1.0
-    rel, it = np.inf, 0
-    for it in range(1, (max_iter or 50 + 4 * N) + 1):
-        gw = g @ w
-        rel = (gw - g.min()) / fscale
-        if rel <= tol:
-            it -= 1
-            break
-        g_face = g[S].min()
-        if gw - g_face <= max(tol * fscale, _GROW_RATIO * (gw - g.min())):
-            out = np.flatnonzero(~S & (g < g_face))
-            S[out[np.argsort(g[out])[:n]]] = True
-        d = _face_step(Yf, P, G, g, w, S, trace)
-        t = 1.0
-        for _ in range(60):  # Armijo along the projected arc: several nodes may leave at once
-            w_try = project_simplex(w + t * d)
-            point = _point(Yf, M, w_try, n, trace)
-            slope = g @ (w_try - w)
-            # Armijo, up to the rounding of f (near the optimum the decrease is below it).
-            if point[0] <= f + _ARMIJO * min(slope, 0.0) + _FLAT * max(abs(f), 1.0):
-                break
-            t *= 0.5
-        w, (f, g, P, G) = w_try, point
-        S &= w > 0
-        fscale = abs(f) if trace else 1.0
-    one = np.ones(1)
-    return NewtonSolution(to_simplex(w)[None], rel * one, it * one.astype(int),
-                          (rel <= tol) * one > 0)
-
-
-def _start(Ys, Yf, M, n, trace):
-    """The better (in f) of the best vertex and the projected Newton point from uniform."""
-    N = len(Ys)
-    if trace:
-        f_vertex = np.einsum("ij,nji->n", M, np.linalg.inv(Ys))
-    else:
-        f_vertex = -np.linalg.slogdet(Ys)[1]
-    vertex = np.zeros(N)
-    vertex[np.argmin(f_vertex)] = 1.0
-    u = np.full(N, 1.0 / N)
-    _, g, P, G = _point(Yf, M, u, n, trace)
-    d = _face_step(Yf, P, G, g, u, np.ones(N, dtype=bool), trace, ridge=_START_RIDGE)
-    cand = project_simplex(u + d)
-    pc = _point(Yf, M, cand, n, trace)
-    if pc[0] < f_vertex.min():
-        return cand, pc
-    return vertex, _point(Yf, M, vertex, n, trace)
-
-
-def project_simplex(v):
-    """Euclidean projection of v (N,) onto the simplex (sort-based)."""
-    u = np.sort(v)[::-1]
-    css = np.cumsum(u) - 1.0
-    k = np.flatnonzero(u * np.arange(1, len(v) + 1) > css)[-1]
-    return np.maximum(v - css[k] / (k + 1), 0.0)
-
-
-def _point(Yf, M, w, n, trace):
-    """f, g (N,), P and G (= P M P for "trace", P for "logdet") at w."""
-    Y = (w @ Yf).reshape(n, n)
-    P = np.linalg.inv(Y)
-    if trace:
-        G = P @ M @ P
-        return np.vdot(M, P), -(Yf @ G.ravel()), P, G
-    return -np.linalg.slogdet(Y)[1], -(Yf @ P.ravel()), P, P
-
-
-def _face_step(Yf, P, G, g, w, S, trace, ridge=0.0):
-    """Newton step on the face of S (zeros off S), after removing from S the nodes at
-    weight 0 that it would push negative. ridge > 0 (relative) regularises a singular H
-    instead of taking the minimum-norm step (used for the heuristic start only)."""
-    idx = np.flatnonzero(S)
-    n = len(P)
-    K = (P[:, None, :, None] * G[None, :, None, :]).reshape(n * n, n * n)  # P kron G
-    H = Yf[idx] @ K @ Yf[idx].T
-    if trace:
-        H *= 2.0
+    pb = _prepare(Ys, M, criterion)
+    w = np.full(N, 1.0 / N) if w0 is None else to_simplex(w0)
+    f, Ui = _value(pb, w)
+    it, limit = 0, max_iter or 50 + 4 * N
     while True:
-        dk = _reduced_newton(H, g[idx], w[idx], ridge)
-        leave = (w[idx] <= 0) & (dk < 0)
-        if not leave.any():
+        g, D = _model(pb, Ui)
+        rel = max(float(g @ w - g.min()), 0.0) / (abs(f) if pb.trace else 1.0)
+        if rel <= tol or it == limit:
             break
-        S[idx[leave]] = False  # some node of S has w > 0 and never leaves: S stays nonempty
-        keep = ~leave
-        idx, H = idx[keep], H[np.ix_(keep, keep)]
-    d = np.zeros_like(w)
-    d[idx] = dk
-    return d
+        it += 1
+        lam = _nearest(D, np.flatnonzero(w))
+        w, f, Ui = _step_towards(pb, w, lam, f, g)
+    one = np.ones(1)
+    return NewtonSolution(w[None], rel * one, it * one.astype(int), (rel <= tol) * one > 0)
 
 
-def _reduced_newton(H, g, w, ridge):
-    """Newton step d (k,) with sum(d) = 0 for H (k, k), g (k,): d = (u, -sum u) with
-    (Q^T H Q) u = -Q^T g, Q = [I; -1^T]. By Cholesky when Q^T H Q is well conditioned (or
-    ridge > 0), else the minimum-norm step of `_face_newton_step`."""
-    k = len(g)
-    if k == 1:
-        return np.zeros(1)
-    Hr = H[:-1, :-1] - H[:-1, -1:] - H[-1:, :-1] + H[-1, -1]
-    top = Hr.diagonal().max()
-    if ridge:
-        Hr = Hr + ridge * top * np.eye(k - 1)
+@dataclass(frozen=True)
+class _Problem:
+    """One problem prepared once: Yf (N, n*n) rows vec(Y_i), Ysv (N, m) rows svec(Y_i),
+    M (n, n), B (n, n) its Cholesky factor ("trace"), T the svec basis, diagonal positions."""
+
+    Yf: np.ndarray
+    Ysv: np.ndarray
+    M: np.ndarray
+    B: np.ndarray | None
+    T: np.ndarray
+    diag: np.ndarray
+    trace: bool
+
+
+def _prepare(Ys, M, criterion) -> _Problem:
+    N, n = Ys.shape[:2]
+    i, j = svec.upper(n)
+    trace = criterion == "trace"
+    return _Problem(Ys.reshape(N, n * n), Ys[:, i, j] * svec.scale(n), M,
+                    lapack.dpotrf(M, lower=1)[0] if trace else None, svec.basis(n),
+                    np.flatnonzero(i == j), trace)
+
+
+def _value(pb, w):
+    """f(w) and U^-1 (Y(w) = U^T U); f = inf where Y(w) is not positive definite to
+    rounding (a trial point the line search must reject)."""
+    n = len(pb.M)
+    U, info = lapack.dpotrf((w @ pb.Yf).reshape(n, n))
+    if info:
+        return np.inf, None
+    Ui = lapack.dtrtri(U)[0]
+    if pb.trace:
+        C = pb.B.T @ Ui
+        return float(np.vdot(C, C)), Ui  # tr(M P) = |B^T U^-1|_F^2
+    return -2.0 * float(np.log(U.diagonal()).sum()), Ui
+
+
+def _model(pb, Ui):
+    """g (N,) and D (N, m), rows z'_i - zhat' (the docstring of `solve_one`)."""
+    zeta = np.zeros(pb.T.shape[1])
+    if pb.trace:
+        mu, V = lapack.dsyevd(Ui.T @ pb.M @ Ui)[:2]
+        R = Ui @ V
+        i, j = svec.upper(len(mu))
+        s = np.sqrt(mu[i] + mu[j])[:, None]
+        zeta[pb.diag] = np.sqrt(0.5 * mu)
+        c = 2.0  # z(w) = svec(I) * s = 2 zeta, since R^T Y(w) R = I
+    else:
+        R, s, c = Ui, 1.0, 1.0
+        zeta[pb.diag] = 1.0  # z(w) = svec(I) = zeta
+    # svec(R^T X R) = T^T (R^T kron R^T) T svec(X)
+    Rt = R.T
+    C = pb.T.T @ (Rt[:, None, :, None] * Rt[None, :, None, :]).reshape(len(pb.T), -1) @ pb.T
+    Z = pb.Ysv @ (s * C).T  # rows z_i
+    g = -(Z @ zeta)
+    # z'_i = z_i - (1 - rho) (u . z_i) u with u = zeta / |zeta| and u . z_i = -g_i / |zeta|
+    D = Z + ((1.0 - _RHO) / (zeta @ zeta) * g[:, None] - (_RHO * c + 1.0 / _RHO)) * zeta
+    return g, D
+
+
+def _nearest(D, S):
+    """Weights lam (N,) of the point of conv{d_i} nearest 0, for D (N, m) rows d_i. NNLS
+    solves min |E u - e| over u >= 0 with E = [D^T; 1^T] and e = (0, 1); then
+    lam = u / sum(u) (Lawson & Hanson 1974, ch. 23). NNLS builds its active set from empty,
+    at a cost that grows with N: for many nodes the face of the nodes S is tried first."""
+    lam = _nearest_on_face(D, S) if len(D) >= _FACE_MIN_NODES else None
+    if lam is not None:
+        return lam
+    E = np.vstack([D.T, np.ones(len(D))])
+    e = np.zeros(len(E))
+    e[-1] = 1.0
     try:
-        piv = np.linalg.cholesky(Hr).diagonal()
-    except np.linalg.LinAlgError:
-        piv = np.zeros(1)
-    if piv.min() ** 2 > _PINV_RTOL * top:
-        u = np.linalg.solve(Hr, g[-1] - g[:-1])
-        return np.append(u, -u.sum())
-    return _face_newton_step(H[None], g[None], np.ones((1, k), dtype=bool), w[None])[0]
+        u = nnls(E, e, maxiter=20 * len(D))[0]
+    except RuntimeError as exc:  # its iteration limit (finite termination is proven)
+        raise FusionSolverError("newton", "qp_iteration_limit", str(exc)) from None
+    return u / u.sum()
+
+
+def _nearest_on_face(D, S):
+    """The nearest point restricted to the nodes S, if it has positive weights there and no
+    node off S would bring the model lower (Wolfe's test d_i . p >= |p|^2); else None.
+    With the last node of S eliminated: min |d_k + A u| over u, A = (d_i - d_k), by QR."""
+    if S.size < 2 or S.size > D.shape[1] + 1:
+        return None
+    Ds = D[S]
+    A = (Ds[:-1] - Ds[-1]).T
+    lqr, u, info = lapack.dgels(A, -Ds[-1])
+    r = np.abs(lqr.diagonal())
+    if info or r.min() <= _PINV_RTOL * r.max():
+        return None
+    lam_s = np.append(u[:S.size - 1], 1.0 - u[:S.size - 1].sum())
+    p = lam_s @ Ds
+    Dp = D @ p
+    if lam_s.min() <= 0.0 or Dp.min() < p @ p - _WOLFE_RTOL * np.abs(Dp).max():
+        return None
+    lam = np.zeros(len(D))
+    lam[S] = lam_s
+    return lam
+
+
+def _step_towards(pb, w, lam, f, g):
+    """Armijo backtracking from lam towards w; returns the new w, f and U^-1."""
+    d = lam - w
+    slope = float(g @ d)  # < 0: lam minimises a convex model that agrees with f to first order
+    t = 1.0
+    for _ in range(60):
+        w_try = lam if t == 1.0 else w + t * d
+        f_try, Ui = _value(pb, w_try)
+        # Armijo, up to the rounding of f (near the optimum the decrease is below it).
+        if f_try <= f + _ARMIJO * t * min(slope, 0.0) + _FLAT * max(abs(f), 1.0):
+            break
+        t *= 0.5
+    return w_try, f_try, Ui
