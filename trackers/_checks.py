@@ -30,12 +30,18 @@ def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.nd
     return arr
 
 
-def covariance(name: str, value, n: int) -> np.ndarray:
-    """Check a symmetric positive-definite (n, n) matrix (Cholesky must succeed)."""
+def _symmetric(name: str, value, n: int) -> tuple[np.ndarray, float]:
+    """A finite symmetric (n, n) matrix and its scale max(1, max |P|)."""
     P = finite_array(name, value, shape=(n, n))
     scale = max(1.0, float(np.max(np.abs(P))))
     if not np.allclose(P, P.T, rtol=1e-9, atol=1e-12 * scale):
         raise ValueError(f"{name} must be symmetric")
+    return P, scale
+
+
+def covariance(name: str, value, n: int) -> np.ndarray:
+    """Check a symmetric positive-definite (n, n) matrix (Cholesky must succeed)."""
+    P, _ = _symmetric(name, value, n)
     try:
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
@@ -45,10 +51,7 @@ def covariance(name: str, value, n: int) -> np.ndarray:
 
 def psd_covariance(name: str, value, n: int) -> np.ndarray:
     """Check a symmetric positive-semidefinite (n, n) matrix (a process noise may be singular)."""
-    P = finite_array(name, value, shape=(n, n))
-    scale = max(1.0, float(np.max(np.abs(P))))
-    if not np.allclose(P, P.T, rtol=1e-9, atol=1e-12 * scale):
-        raise ValueError(f"{name} must be symmetric")
+    P, scale = _symmetric(name, value, n)
     if np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) < -1e-10 * scale:
         raise ValueError(f"{name} must be positive semidefinite")
     return P

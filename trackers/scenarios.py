@@ -94,6 +94,23 @@ def _propagate(x0, rates, dt, q, process_noise, rng):
     return X
 
 
+def _check_shared(cfg) -> None:
+    """The fields both scenario configurations have: time grid, motion, detection, filter."""
+    _checks.positive("dt", cfg.dt)
+    _checks.positive_int("n_steps", cfg.n_steps)
+    _checks.positive("q", cfg.q)
+    _check_region("region", cfg.region)
+    if cfg.turn_noise_sd < 0:
+        raise ValueError(f"turn_noise_sd must be >= 0, got {cfg.turn_noise_sd}")
+    for i, p in enumerate(cfg.p_detect):
+        _checks.probability(f"p_detect[{i}]", p)
+    _checks.positive_int("n_particles", cfg.n_particles)
+    _checks.probability("clutter_prior", cfg.clutter_prior)
+    _checks.positive("clutter_density", cfg.clutter_density)
+    _checks.positive("prior_cov", cfg.prior_cov)
+    _checks.probability("resample_threshold", cfg.resample_threshold)
+
+
 def _check_region(name, region):
     r = _checks.finite_array(name, region, shape=(2, 2))
     if np.any(r[:, 1] <= r[:, 0]):
@@ -134,25 +151,13 @@ class Table1Config:
     resample_threshold: float = 0.25
 
     def __post_init__(self) -> None:
-        _checks.positive("dt", self.dt)
-        _checks.positive_int("n_steps", self.n_steps)
-        _checks.positive("q", self.q)
+        _check_shared(self)
         _checks.positive("r", self.r)
         _checks.finite_array("x0", self.x0, shape=(4,))
         w = _checks.finite_array("turn_windows", self.turn_windows).reshape(-1, 3)
         if np.any(w[:, 1] < w[:, 0]):
             raise ValueError("turn_windows must be (start, end, rate) with start <= end")
-        if self.turn_noise_sd < 0:
-            raise ValueError(f"turn_noise_sd must be >= 0, got {self.turn_noise_sd}")
-        for i, p in enumerate(self.p_detect):
-            _checks.probability(f"p_detect[{i}]", p)
         _checks.probability("clutter_fraction", self.clutter_fraction)
-        _check_region("region", self.region)
-        _checks.positive_int("n_particles", self.n_particles)
-        _checks.probability("clutter_prior", self.clutter_prior)
-        _checks.positive("clutter_density", self.clutter_density)
-        _checks.positive("prior_cov", self.prior_cov)
-        _checks.probability("resample_threshold", self.resample_threshold)
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
@@ -271,11 +276,8 @@ class Table2Config:
     resample_threshold: float = 0.25
 
     def __post_init__(self) -> None:
-        _checks.positive("dt", self.dt)
-        _checks.positive_int("n_steps", self.n_steps)
-        _checks.positive("q", self.q)
+        _check_shared(self)
         _checks.positive("meas_sd", self.meas_sd)
-        _check_region("region", self.region)
         # a study's TOML gives targets as tables (dicts) or arrays; store TargetSpecs
         targets = tuple(_target_spec(i, tg) for i, tg in enumerate(self.targets))
         object.__setattr__(self, "targets", targets)
@@ -283,20 +285,11 @@ class Table2Config:
             _checks.finite_array(f"targets[{i}].x0", tg.x0, shape=(4,))
             if not tg.death > tg.birth:
                 raise ValueError(f"targets[{i}] must have death > birth")
-        if self.turn_noise_sd < 0:
-            raise ValueError(f"turn_noise_sd must be >= 0, got {self.turn_noise_sd}")
-        for i, p in enumerate(self.p_detect):
-            _checks.probability(f"p_detect[{i}]", p)
         if not (np.isfinite(self.clutter_rate) and self.clutter_rate >= 0):
             raise ValueError(f"clutter_rate must be finite and >= 0, got {self.clutter_rate}")
-        _checks.positive_int("n_particles", self.n_particles)
         _checks.probability("birth_prob", self.birth_prob)
         _checks.positive("lifetime_shape", self.lifetime_shape)
         _checks.positive("lifetime_scale", self.lifetime_scale)
-        _checks.probability("clutter_prior", self.clutter_prior)
-        _checks.positive("clutter_density", self.clutter_density)
-        _checks.positive("prior_cov", self.prior_cov)
-        _checks.probability("resample_threshold", self.resample_threshold)
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
