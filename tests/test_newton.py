@@ -27,13 +27,12 @@ def _f(sp, w, criterion):
 
 @pytest.mark.parametrize("criterion", CRITERIA)
 @pytest.mark.parametrize("kind", KINDS)
-def test_whitened_model_has_the_gradient_and_hessian_of_criteria(kind, criterion, monkeypatch):
+def test_whitened_model_has_the_gradient_and_hessian_of_criteria(kind, criterion):
     # rho = 1: the model is Newton's, so d_i - d_j = z_i - z_j and H_ij = z_i . z_j
-    monkeypatch.setattr(newton, "_RHO", 1.0)
     sp = _scaled(instance(np.random.default_rng(4), 6, 3, kind), criterion)
     w = np.random.default_rng(5).dirichlet(np.ones(6))
     pb = newton._prepare(sp.Ys, sp.M, criterion)
-    g, D = newton._model(pb, newton._value(pb, w)[1])
+    g, D = newton._model(pb, newton._value(pb, w)[1], 1.0)
     ev = evaluate(sp.Ys, w, criterion, sp.M, hessian=True)
     assert np.allclose(g, ev.g, rtol=1e-9, atol=1e-12 * np.abs(ev.g).max())
     Q = np.vstack([np.eye(5), -np.ones(5)])  # directions with sum 0: Q^T H Q = A A^T
@@ -131,3 +130,10 @@ def test_scalar_pair_solver_equals_the_vectorised_one(criterion):
         f = [closed_form.objective(np.array(x), lam - 1.0, c, criterion)
              for x in (w_scalar, w_batch[0])]
         assert abs(f[0] - f[1]) <= 1e-13 * max(abs(f[1]), 1.0)
+
+
+def test_no_progress_stops_after_a_few_steps_unconverged(monkeypatch):
+    sp = _scaled(instance(np.random.default_rng(11), 5, 2, "random"), "trace")
+    monkeypatch.setattr(newton, "_nearest", lambda D, S: np.full(len(D), 1.0 / len(D)))
+    sol = newton.solve_one(sp.Ys, sp.M, "trace")
+    assert not sol.converged[0] and sol.iterations[0] == newton._STALL

@@ -33,8 +33,12 @@ _ARMIJO = 1e-4
 _GROW_RATIO = 0.1
 # A predicted decrease below this times |f| is under the rounding of f: Armijo cannot see it.
 _FLAT = 1e3 * np.finfo(float).eps
-# sqrt of the model's curvature along the whitened gradient, relative to f's own (1).
+# sqrt of the model's curvature along the whitened gradient, relative to f's own (1), and
+# below which relative gap it is f's own again.
 _RHO = 0.1
+_LOCAL = 1e-4
+# Steps without a better certificate after which `solve_one` stops (rounding level reached).
+_STALL = 5
 # Wolfe's optimality test of a face, relative to the largest |d_i . p|; and from how many
 # nodes on the face is tried before NNLS (measured faster from 32 to 64 nodes, slower at 16).
 _WOLFE_RTOL = 1e-12
@@ -180,21 +184,26 @@ def solve_one(Ys, M, criterion, w0=None, tol=TOL, max_iter=None) -> NewtonSoluti
     f is homogeneous in Y (f(tY) = f/t, resp. f - n log t), and along u, where that
     nonlinearity lives, Newton's model is poor far from the optimum: rho = 0.1 keeps 1% of its
     curvature there (the Hessian of h = -1/f, resp. -exp(-f/n), has none). At the optimum u is
-    orthogonal to the face, so the local convergence stays quadratic. The model's minimiser
+    orthogonal to the face, so the local convergence stays quadratic; below a relative gap of
+    1e-4 it uses rho = 1, whose nearest-point problem is the best conditioned. The minimiser
     over the simplex is the point of the polytope conv{W z_i} nearest to c rho zeta + zeta/rho
     (`_nearest`); its support has at most m + 1 nodes whatever N. w moves towards it with
-    Armijo backtracking on f, and it stops on the certificate as `solve` does. Starts at w0 or
-    uniform weights (where the scaled Y'(w) = I).
+    Armijo backtracking on f. It stops on the certificate as `solve` does, or unconverged when
+    5 steps have not improved it (rounding level). Starts at w0 or uniform weights (where the
+    scaled Y'(w) = I).
     """
     N, n = Ys.shape[:2]
     pb = _prepare(Ys, M, criterion)
     w = np.full(N, 1.0 / N) if w0 is None else to_simplex(w0)
     f, Ui = _value(pb, w)
-    it, limit = 0, max_iter or 50 + 4 * N
+    it, limit, rel, best, stalled = 0, max_iter or 50 + 4 * N, np.inf, np.inf, 0
     while True:
-        g, D = _model(pb, Ui)
+        # Near the optimum, Newton's own model: its nearest-point problem is the best
+        # conditioned, and the damping along u no longer matters there.
+        g, D = _model(pb, Ui, 1.0 if rel <= _LOCAL else _RHO)
         rel = max(float(g @ w - g.min()), 0.0) / (abs(f) if pb.trace else 1.0)
-        if rel <= tol or it == limit:
+        best, stalled = (rel, 0) if rel < best else (best, stalled + 1)
+        if rel <= tol or it == limit or stalled == _STALL:  # the last: at rounding level
             break
         it += 1
         lam = _nearest(D, np.flatnonzero(w))
@@ -240,7 +249,7 @@ def _value(pb, w):
     return -2.0 * float(np.log(U.diagonal()).sum()), Ui
 
 
-def _model(pb, Ui):
+def _model(pb, Ui, rho):
     """g (N,) and D (N, m), rows z'_i - zhat' (the docstring of `solve_one`)."""
     zeta = np.zeros(pb.T.shape[1])
     if pb.trace:
@@ -259,7 +268,7 @@ def _model(pb, Ui):
     Z = pb.Ysv @ (s * C).T  # rows z_i
     g = -(Z @ zeta)
     # z'_i = z_i - (1 - rho) (u . z_i) u with u = zeta / |zeta| and u . z_i = -g_i / |zeta|
-    D = Z + ((1.0 - _RHO) / (zeta @ zeta) * g[:, None] - (_RHO * c + 1.0 / _RHO)) * zeta
+    D = Z + ((1.0 - rho) / (zeta @ zeta) * g[:, None] - (rho * c + 1.0 / rho)) * zeta
     return g, D
 
 
