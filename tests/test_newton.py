@@ -132,8 +132,12 @@ def test_scalar_pair_solver_equals_the_vectorised_one(criterion):
         assert abs(f[0] - f[1]) <= 1e-13 * max(abs(f[1]), 1.0)
 
 
-def test_no_progress_stops_after_a_few_steps_unconverged(monkeypatch):
+def test_no_progress_near_the_optimum_stops_after_a_few_steps(monkeypatch):
     sp = _scaled(instance(np.random.default_rng(11), 5, 2, "random"), "trace")
-    monkeypatch.setattr(newton, "_nearest", lambda D, S: np.full(len(D), 1.0 / len(D)))
-    sol = newton.solve_one(sp.Ys, sp.M, "trace")
+    w = newton.solve_one(sp.Ys, sp.M, "trace", tol=1e-6).w[0]  # in the local phase
+    monkeypatch.setattr(newton, "_nearest", lambda D, S: w)  # a QP that never moves
+    sol = newton.solve_one(sp.Ys, sp.M, "trace", w0=w)
     assert not sol.converged[0] and sol.iterations[0] == newton._STALL
+    monkeypatch.setattr(newton, "_nearest", lambda D, S: np.eye(5)[0])
+    far = newton.solve_one(sp.Ys, sp.M, "trace", w0=np.eye(5)[0], max_iter=12)
+    assert far.rel_gap[0] > 1e-3 and far.iterations[0] == 12  # far away it does not give up

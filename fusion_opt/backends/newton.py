@@ -37,7 +37,7 @@ _FLAT = 1e3 * np.finfo(float).eps
 # below which relative gap it is f's own again.
 _RHO = 0.1
 _LOCAL = 1e-4
-# Steps without a better certificate after which `solve_one` stops (rounding level reached).
+# Steps without a better certificate in the local phase after which `solve_one` stops.
 _STALL = 5
 # Wolfe's optimality test of a face, relative to the largest |d_i . p|; and from how many
 # nodes on the face is tried before NNLS (measured faster from 32 to 64 nodes, slower at 16).
@@ -189,8 +189,8 @@ def solve_one(Ys, M, criterion, w0=None, tol=TOL, max_iter=None) -> NewtonSoluti
     over the simplex is the point of the polytope conv{W z_i} nearest to c rho zeta + zeta/rho
     (`_nearest`); its support has at most m + 1 nodes whatever N. w moves towards it with
     Armijo backtracking on f. It stops on the certificate as `solve` does, or unconverged when
-    5 steps have not improved it (rounding level). Starts at w0 or uniform weights (where the
-    scaled Y'(w) = I).
+    5 steps in the local phase have not improved it (rounding level). Starts at w0 or uniform
+    weights (where the scaled Y'(w) = I).
     """
     N, n = Ys.shape[:2]
     pb = _prepare(Ys, M, criterion)
@@ -202,7 +202,8 @@ def solve_one(Ys, M, criterion, w0=None, tol=TOL, max_iter=None) -> NewtonSoluti
         # conditioned, and the damping along u no longer matters there.
         g, D = _model(pb, Ui, 1.0 if rel <= _LOCAL else _RHO)
         rel = max(float(g @ w - g.min()), 0.0) / (abs(f) if pb.trace else 1.0)
-        best, stalled = (rel, 0) if rel < best else (best, stalled + 1)
+        # far from the optimum the certificate need not fall at every step; near it, it does
+        best, stalled = (rel, 0) if rel < best else (best, stalled + (best <= _LOCAL))
         if rel <= tol or it == limit or stalled == _STALL:  # the last: at rounding level
             break
         it += 1
