@@ -32,7 +32,8 @@ def test_whitened_model_has_the_gradient_and_hessian_of_criteria(kind, criterion
     sp = _scaled(instance(np.random.default_rng(4), 6, 3, kind), criterion)
     w = np.random.default_rng(5).dirichlet(np.ones(6))
     pb = newton._prepare(sp.Ys, sp.M, criterion)
-    g, D = newton._model(pb, newton._value(pb, w)[1], 1.0)
+    g = newton._model(pb, newton._value(pb, w)[1], 1.0)
+    D = pb.E[:-1].T
     ev = evaluate(sp.Ys, w, criterion, sp.M, hessian=True)
     assert np.allclose(g, ev.g, rtol=1e-9, atol=1e-12 * np.abs(ev.g).max())
     Q = np.vstack([np.eye(5), -np.ones(5)])  # directions with sum 0: Q^T H Q = A A^T
@@ -45,7 +46,7 @@ def test_nearest_point_matches_cvxpy_and_the_face_test():
     rng = np.random.default_rng(6)
     for N, m in ((5, 2), (12, 3), (40, 6)):
         D = rng.standard_normal((N, m)) + 1.5  # 0 outside the hull: a boundary point
-        lam = newton._nearest(D, np.arange(N))
+        lam = newton._nearest(np.vstack([D.T, np.ones(N)]), np.full(N, 1.0 / N))
         x = cp.Variable(N, nonneg=True)
         cp.Problem(cp.Minimize(cp.sum_squares(D.T @ x)), [cp.sum(x) == 1]).solve("CLARABEL")
         assert abs(lam.sum() - 1) < 1e-14 and lam.min() >= 0
@@ -135,9 +136,9 @@ def test_scalar_pair_solver_equals_the_vectorised_one(criterion):
 def test_no_progress_near_the_optimum_stops_after_a_few_steps(monkeypatch):
     sp = _scaled(instance(np.random.default_rng(11), 5, 2, "random"), "trace")
     w = newton.solve_one(sp.Ys, sp.M, "trace", tol=1e-6).w[0]  # in the local phase
-    monkeypatch.setattr(newton, "_nearest", lambda D, S: w)  # a QP that never moves
+    monkeypatch.setattr(newton, "_nearest", lambda E, w_: w)  # a QP that never moves
     sol = newton.solve_one(sp.Ys, sp.M, "trace", w0=w)
     assert not sol.converged[0] and sol.iterations[0] == newton._STALL
-    monkeypatch.setattr(newton, "_nearest", lambda D, S: np.eye(5)[0])
+    monkeypatch.setattr(newton, "_nearest", lambda E, w_: np.eye(5)[0])
     far = newton.solve_one(sp.Ys, sp.M, "trace", w0=np.eye(5)[0], max_iter=12)
     assert far.rel_gap[0] > 1e-3 and far.iterations[0] == 12  # far away it does not give up

@@ -54,8 +54,9 @@ _SQRT2 = np.sqrt(2.0)
 @dataclass(frozen=True)
 class Template:
     """The data of one (n, N, criterion) with placeholders: A = csc(data, indices, indptr)
-    of shape `shape` where data[y_pos] receives the Y(w) block values (N*m, in the order of
-    `_y_values`), b whose rows b_rows receive sqrt(2) B^T (trace only), q, P = 0, cones."""
+    of shape `shape` where data[y_pos] receives the Y(w) block values (N*m: node by node,
+    each in svec order), b whose rows b_rows receive sqrt(2) B^T (trace only), q, P = 0,
+    cones."""
 
     shape: tuple[int, int]
     data: np.ndarray
@@ -70,7 +71,7 @@ class Template:
 
 
 class _Triplets:
-    """Entries (row, col, value) of A; value None marks a data slot (filled per solve)."""
+    """Entries (row, col, value) of A; value NaN marks a data slot (filled per solve)."""
 
     def __init__(self):
         self.rows, self.cols, self.vals = [], [], []
@@ -130,7 +131,7 @@ def template(n: int, N: int, criterion: str) -> Template:
     data, indices, indptr = A.to_csc((n_row, n_var))
     y_pos = np.flatnonzero(np.isnan(data))  # column by column: node k, then svec order
     data[y_pos] = 0.0
-    for a in (data, b):  # shared by every solve of the shape: copied, never changed
+    for a in (data, b, q):  # shared by every solve of the shape: copied, never changed
         a.setflags(write=False)
     return Template((n_row, n_var), data, indices, indptr, y_pos, b, b_rows, q,
                     sparse.csc_matrix((n_var, n_var)),

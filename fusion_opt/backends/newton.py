@@ -200,40 +200,52 @@ def solve_one(Ys, M, criterion, w0=None, tol=TOL, max_iter=None) -> NewtonSoluti
     while True:
         # Near the optimum, Newton's own model: its nearest-point problem is the best
         # conditioned, and the damping along u no longer matters there.
-        g, D = _model(pb, Ui, 1.0 if rel <= _LOCAL else _RHO)
+        g = _model(pb, Ui, 1.0 if rel <= _LOCAL else _RHO)
         rel = max(float(g @ w - g.min()), 0.0) / (abs(f) if pb.trace else 1.0)
         # far from the optimum the certificate need not fall at every step; near it, it does
         best, stalled = (rel, 0) if rel < best else (best, stalled + (best <= _LOCAL))
         if rel <= tol or it == limit or stalled == _STALL:  # the last: at rounding level
             break
         it += 1
-        lam = _nearest(D, np.flatnonzero(w))
-        w, f, Ui = _step_towards(pb, w, lam, f, g)
+        w, f, Ui = _step_towards(pb, w, _nearest(pb.E, w), f, g)
     one = np.ones(1)
     return NewtonSolution(w[None], rel * one, it * one.astype(int), (rel <= tol) * one > 0)
 
 
 @dataclass(frozen=True)
 class _Problem:
-    """One problem prepared once: Yf (N, n*n) rows vec(Y_i), Ysv (N, m) rows svec(Y_i),
-    M (n, n), B (n, n) its Cholesky factor ("trace"), T the svec basis, diagonal positions."""
+    """One problem prepared once: Yf (N, n*n) rows vec(Y_i), YsvT (m, N) columns svec(Y_i),
+    M (n, n), B (n, n) its Cholesky factor ("trace"), T the svec basis, diagonal positions,
+    zeta of "logdet" (None for "trace"), and E (m + 1, N), whose first m rows each step
+    overwrites with the d_i of `_nearest` and whose last row is ones."""
 
     Yf: np.ndarray
-    Ysv: np.ndarray
+    YsvT: np.ndarray
     M: np.ndarray
     B: np.ndarray | None
     T: np.ndarray
     diag: np.ndarray
-    trace: bool
+    zeta: np.ndarray | None
+    E: np.ndarray
+
+    @property
+    def trace(self) -> bool:
+        return self.zeta is None
 
 
 def _prepare(Ys, M, criterion) -> _Problem:
     N, n = Ys.shape[:2]
     i, j = svec.upper(n)
+    diag = np.flatnonzero(i == j)
     trace = criterion == "trace"
-    return _Problem(Ys.reshape(N, n * n), Ys[:, i, j] * svec.scale(n), M,
-                    lapack.dpotrf(M, lower=1)[0] if trace else None, svec.basis(n),
-                    np.flatnonzero(i == j), trace)
+    zeta = None
+    if not trace:
+        zeta = np.zeros(len(i))
+        zeta[diag] = 1.0  # svec(I)
+    E = np.ones((len(i) + 1, N))
+    return _Problem(Ys.reshape(N, n * n), np.ascontiguousarray((Ys[:, i, j] * svec.scale(n)).T),
+                    M, lapack.dpotrf(M, lower=1)[0] if trace else None, svec.basis(n), diag,
+                    zeta, E)
 
 
 def _value(pb, w):
@@ -251,41 +263,42 @@ def _value(pb, w):
 
 
 def _model(pb, Ui, rho):
-    """g (N,) and D (N, m), rows z'_i - zhat' (the docstring of `solve_one`)."""
-    zeta = np.zeros(pb.T.shape[1])
+    """g (N,); writes the rows d_i = W z_i - zhat' of `_nearest` (the docstring of
+    `solve_one`) into the first m rows of pb.E, as columns."""
     if pb.trace:
         mu, V = lapack.dsyevd(Ui.T @ pb.M @ Ui)[:2]
         R = Ui @ V
         i, j = svec.upper(len(mu))
         s = np.sqrt(mu[i] + mu[j])[:, None]
+        zeta = np.zeros(len(i))
         zeta[pb.diag] = np.sqrt(0.5 * mu)
         c = 2.0  # z(w) = svec(I) * s = 2 zeta, since R^T Y(w) R = I
     else:
-        R, s, c = Ui, 1.0, 1.0
-        zeta[pb.diag] = 1.0  # z(w) = svec(I) = zeta
+        R, s, zeta, c = Ui, 1.0, pb.zeta, 1.0  # z(w) = svec(I) = zeta
     # svec(R^T X R) = T^T (R^T kron R^T) T svec(X)
     Rt = R.T
     C = pb.T.T @ (Rt[:, None, :, None] * Rt[None, :, None, :]).reshape(len(pb.T), -1) @ pb.T
-    Z = pb.Ysv @ (s * C).T  # rows z_i
-    g = -(Z @ zeta)
-    # z'_i = z_i - (1 - rho) (u . z_i) u with u = zeta / |zeta| and u . z_i = -g_i / |zeta|
-    D = Z + ((1.0 - rho) / (zeta @ zeta) * g[:, None] - (rho * c + 1.0 / rho)) * zeta
-    return g, D
+    Zt = (s * C) @ pb.YsvT  # columns z_i
+    g = -(zeta @ Zt)
+    # W z_i = z_i - (1 - rho) (u . z_i) u with u = zeta / |zeta| and u . z_i = -g_i / |zeta|
+    shift = (1.0 - rho) / (zeta @ zeta) * g - (rho * c + 1.0 / rho)
+    np.add(Zt, zeta[:, None] * shift, out=pb.E[:-1])
+    return g
 
 
-def _nearest(D, S):
-    """Weights lam (N,) of the point of conv{d_i} nearest 0, for D (N, m) rows d_i. NNLS
-    solves min |E u - e| over u >= 0 with E = [D^T; 1^T] and e = (0, 1); then
-    lam = u / sum(u) (Lawson & Hanson 1974, ch. 23). NNLS builds its active set from empty,
-    at a cost that grows with N: for many nodes the face of the nodes S is tried first."""
-    lam = _nearest_on_face(D, S) if len(D) >= _FACE_MIN_NODES else None
+def _nearest(E, w):
+    """Weights lam (N,) of the point of conv{d_i} nearest 0, for E (m + 1, N) with columns
+    (d_i, 1). NNLS solves min |E u - e| over u >= 0 with e = (0, 1); then lam = u / sum(u)
+    (Lawson & Hanson 1974, ch. 23). NNLS builds its active set from empty, at a cost that
+    grows with N: for many nodes the face of the support of w is tried first."""
+    N = E.shape[1]
+    lam = _nearest_on_face(E[:-1].T, np.flatnonzero(w)) if N >= _FACE_MIN_NODES else None
     if lam is not None:
         return lam
-    E = np.vstack([D.T, np.ones(len(D))])
     e = np.zeros(len(E))
     e[-1] = 1.0
     try:
-        u = nnls(E, e, maxiter=20 * len(D))[0]
+        u = nnls(E, e, maxiter=20 * N)[0]
     except RuntimeError as exc:  # its iteration limit (finite termination is proven)
         raise FusionSolverError("newton", "qp_iteration_limit", str(exc)) from None
     return u / u.sum()
