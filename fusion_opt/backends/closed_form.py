@@ -43,8 +43,7 @@ from . import WeightSolution
 _EPS = np.finfo(float).eps
 _MAX_ITER = 100  # a guard: the bracket halves at least every other step, so <= ~110 is exact
 # Start points: geometric towards both ends of [0, 1].
-_LADDER = np.array([0.0, 1e-12, 1e-9, 1e-6, 1e-4, 1e-2, 0.1, 0.3, 0.5, 0.7, 0.9, 1 - 1e-2,
-                    1 - 1e-4, 1 - 1e-6, 1 - 1e-9, 1 - 1e-12, 1.0])
+_LADDER = np.array([0.0, 1e-12, 1e-8, 1e-4, 0.1, 0.5, 0.9, 1 - 1e-4, 1 - 1e-8, 1 - 1e-12, 1.0])
 # Weight of f'' in the Newton curvature, beside that of the homogeneous form (module docstring).
 _RHO2 = 0.01
 
