@@ -20,7 +20,7 @@ import numpy as np
 from . import criteria
 from .backends import EXACT, REGISTRY, newton
 from .mbci import detection_scales
-from .results import FusionInputError, FusionResult
+from .results import FusionInputError, FusionResult, FusionSolverError
 from .rules import RULES
 from .scaling import ScaledProblem, scale
 from .simplex import to_simplex
@@ -104,9 +104,12 @@ def _fuse_weights(means, covs, criterion, backend, polish, method) -> FusionResu
 
 def _polish(sp: ScaledProblem, w: np.ndarray, status: str):
     """Newton from the solver's weights with its near-zero weights set to 0; the better
-    certificate of the two wins."""
+    certificate of the two wins (the solver's, too, if the Newton method fails)."""
     start = np.where(w >= _SUPPORT_RTOL * w.max(), w, 0.0)
-    sol = newton.solve(sp.Ys[None], sp.M[None], sp.criterion, w0=start[None])
+    try:
+        sol = newton.solve_one(sp.Ys, sp.M, sp.criterion, w0=start)
+    except FusionSolverError:
+        return w, status, 0
     ev = criteria.evaluate(sp.Ys, w, sp.criterion, sp.M)
     before = newton.relative_gap(ev.f, ev.g, w, sp.criterion)
     if sol.rel_gap[0] <= before:

@@ -47,3 +47,39 @@ def test_equal_data_give_bit_identical_results_whatever_was_solved_before(backen
     fo.bci(*other, backend=backend, polish=False)
     again = fo.bci(*inst, backend=backend, polish=False)
     np.testing.assert_array_equal(first.weights, again.weights)
+
+
+def test_clarabel_retries_without_chordal_decomposition(monkeypatch):
+    """A solve that fails with decomposition (as one Table 1 log-det pair did) is tried
+    once more without it, for both Clarabel backends."""
+    import clarabel
+
+    programs.clear_cache()
+    rng = np.random.default_rng(3)
+    inst = random_instance(rng, 3, 4)
+    expected = fo.bci(*inst, backend="clarabel", polish=False).objective
+    real_solve, seen = cp.Problem.solve, []
+
+    def flaky(self, *args, **kwargs):
+        seen.append(kwargs.get("chordal_decomposition_enable", True))
+        if seen[-1]:
+            raise cp.SolverError("InsufficientProgress")
+        return real_solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp.Problem, "solve", flaky)
+    r = fo.bci(*inst, backend="clarabel", polish=False)
+    assert seen == [True, False] and r.status == "optimal"
+    assert r.objective == pytest.approx(expected, rel=1e-8)
+
+    real_solver, used = clarabel.DefaultSolver, []
+
+    def direct(P, q, A, b, cones, settings):
+        used.append(settings.chordal_decomposition_enable)
+        if used[-1]:
+            raise RuntimeError("InsufficientProgress")
+        return real_solver(P, q, A, b, cones, settings)
+
+    monkeypatch.setattr(clarabel, "DefaultSolver", direct)
+    r = fo.bci(*inst, backend="clarabel-direct", polish=False)
+    assert used == [True, False] and r.status == "optimal"
+    assert r.objective == pytest.approx(expected, rel=1e-6)

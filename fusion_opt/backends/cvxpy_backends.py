@@ -17,9 +17,11 @@ from ..programs import program, set_data
 from ..results import FusionSolverError
 from . import WeightSolution, clarabel_direct
 
+# Each solver with the option sets to try in turn (Clarabel's second drops chordal
+# decomposition, see clarabel_direct.ATTEMPTS).
 SOLVERS = {
-    "clarabel": (cp.CLARABEL, clarabel_direct.SETTINGS),
-    "scs": (cp.SCS, {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000}),
+    "clarabel": (cp.CLARABEL, clarabel_direct.ATTEMPTS),
+    "scs": (cp.SCS, ({"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000},)),
 }
 _OK = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}
 
@@ -27,24 +29,30 @@ _OK = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}
 def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> WeightSolution:
     """Ys (N, n, n), M (n, n) of a scaled problem; returns weights and solver stats."""
     N, n = Ys.shape[:2]
-    solver, options = SOLVERS[backend]
+    solver, attempts = SOLVERS[backend]
     prog = program(n, N, criterion, solver)
     set_data(prog, Ys, M)
     t0 = time.perf_counter()
-    try:
-        with warnings.catch_warnings():  # "may be inaccurate": the status says so, polish fixes
-            warnings.simplefilter("ignore", UserWarning)
-            # warm_start=False: CVXPY would otherwise update the previous solver in place,
-            # whose result differs in the last bits from a fresh one, so equal data could
-            # give different weights depending on what was solved before.
-            prog.problem.solve(solver=solver, warm_start=False, **options)
-    except cp.SolverError as exc:
-        raise FusionSolverError(backend, "solver_error", str(exc)) from None
-    wall = time.perf_counter() - t0
+    for options in attempts:
+        try:
+            _solve(prog, solver, options)
+        except cp.SolverError as exc:
+            error = FusionSolverError(backend, "solver_error", str(exc))
+            continue
+        status, w = prog.problem.status, prog.w.value
+        if status in _OK and w is not None and np.all(np.isfinite(w)):
+            stats = prog.problem.solver_stats
+            return WeightSolution(np.array(w), _OK[status], int(stats.num_iters or 0),
+                                  time.perf_counter() - t0, stats.solve_time)
+        error = FusionSolverError(backend, str(status))
+    raise error
+
+
+def _solve(prog, solver, options) -> None:
     prog.solves += 1
-    status = prog.problem.status
-    if status not in _OK or prog.w.value is None or not np.all(np.isfinite(prog.w.value)):
-        raise FusionSolverError(backend, str(status))
-    stats = prog.problem.solver_stats
-    return WeightSolution(np.array(prog.w.value), _OK[status], int(stats.num_iters or 0), wall,
-                          stats.solve_time)
+    with warnings.catch_warnings():  # "may be inaccurate": the status says so, polish fixes
+        warnings.simplefilter("ignore", UserWarning)
+        # warm_start=False: CVXPY would otherwise update the previous solver in place, whose
+        # result differs in the last bits from a fresh one, so equal data could give
+        # different weights depending on what was solved before.
+        prog.problem.solve(solver=solver, warm_start=False, **options)
