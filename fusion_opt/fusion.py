@@ -6,8 +6,9 @@ on the simplex chosen to minimise tr P(w) ("trace") or log det P(w) ("logdet"):
     P(w)^-1 = sum_i w_i Y_i,      m(w) = P(w) sum_i w_i Y_i m_i.
 
 Every call validates its input, scales the problem (`scaling.py`), asks a backend for the
-weights, maps them exactly onto the simplex, polishes them with the active-set Newton method
-(so the certificate reaches machine precision whatever the backend), and reports the
+weights, maps them exactly onto the simplex, polishes them with the Newton method of
+`backends/newton.py` started there (so the certificate reaches machine precision whatever
+the backend), and reports the
 optimality gap of DESIGN §1 at the returned weights.
 """
 
