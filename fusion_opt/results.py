@@ -38,7 +38,9 @@ def _frozen(a) -> np.ndarray:
 class FusionResult:
     """One fused estimate.
 
-    weights (N,) on the simplex; mean (n,); cov (n, n) the fused covariance (for MBCI the
+    weights (N,) on the simplex (for the rules naive, known-cross and ei, which have no CI
+    weights, the gain shares tr(K_i) / n, which sum to 1 and may be negative for
+    known-cross); mean (n,); cov (n, n) the fused covariance (for MBCI the
     modified one, Phat); objective is tr(cov) ("trace") or log det(cov) ("logdet");
     gap the optimality certificate of DESIGN §1 at `weights` (f(w) - f* <= gap), in the
     objective's units; solve_time the wall time of the weight solve in seconds (solver and
