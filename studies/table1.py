@@ -151,7 +151,7 @@ def _covnorm_figure(times, est, window, path) -> None:
     sel = (times >= window[0]) & (times <= window[1])
     if not sel.any():  # a shortened run ends before the window: show all of it
         sel[:] = True
-    for row in ("RBPF a", "RBPF b", "CI", "modified CI"):
+    for row in ("RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet"):
         axes[0].plot(times[sel], np.linalg.norm(est[row][1][sel], 2, axis=(1, 2)), label=row)
     axes[0].set_xlabel("time (s)")
     axes[0].set_ylabel("2-norm of covariance")
