@@ -251,7 +251,8 @@ def _figure(rows, path: Path) -> None:
                 t = [_pooled([r for r in single if (r["n"], r["N"], r["criterion"])
                               == (n, N, crit)], b, "median_ms") for N in pts]
                 ax.plot(pts, t, style, ms=3, label=f"{b} ({crit})")
-        ax.set(xscale="log", yscale="log", xlabel="N (nodes)", title=f"n = {n}")
+        plotting.log_axes(ax, sorted({r["N"] for r in single if r["n"] == n}), "N (nodes)")
+        ax.set_title(f"n = {n}")
     axes[0].set_ylabel("median time per solve (ms)")
     axes[-1].legend(fontsize=6)
     plotting.save(fig, path)

@@ -34,7 +34,7 @@ from trackers import metrics
 from trackers.models import turn_model
 
 from . import stats
-from .plotting import new_figure, save
+from .plotting import log_axes, new_figure, save
 
 RULES = {
     "naive": {"method": "naive"},
@@ -400,9 +400,7 @@ def _figures(config, results, out, band) -> None:
             ax.fill_between(x, m[:, 1], m[:, 2], alpha=0.15)
     axes[1].axhspan(*band, color="grey", alpha=0.2, label="chi-square 95% band")
     for ax, label in zip(axes, ("MSE", "ANEES"), strict=True):
-        ax.set_xscale("log", base=2)
-        ax.set_yscale("log")
-        ax.set_xlabel("N (nodes)")
+        log_axes(ax, x, "N (nodes)")
         ax.set_ylabel(label)
     axes[0].legend(fontsize=7)
     save(fig, out / "nnode_mse_anees_vs_N.png")
@@ -410,9 +408,10 @@ def _figures(config, results, out, band) -> None:
     if sc is not None:
         fig, axes = new_figure(1, 1, width=6)
         for backend, times in sc["vs_N"].items():
-            axes[0].loglog([int(k) for k in times], [1e3 * t for t in times.values()],
-                           marker="o", label=backend)
-        axes[0].set_xlabel("N (nodes), n = 4")
+            axes[0].plot([int(k) for k in times], [1e3 * t for t in times.values()],
+                         marker="o", label=backend)
+        log_axes(axes[0], [int(k) for k in next(iter(sc["vs_N"].values()))],
+                 "N (nodes), n = 4")
         axes[0].set_ylabel("median time per solve (ms)")
         axes[0].legend()
         save(fig, out / "nnode_time_vs_N.png")

@@ -8,6 +8,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+from matplotlib.ticker import NullFormatter  # noqa: E402
 
 
 def new_figure(rows: int, cols: int, width: float = 6.0):
@@ -21,3 +22,11 @@ def save(fig, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def log_axes(ax, xs, xlabel: str) -> None:
+    """Log-log axes with x ticks at the values xs, labelled plainly (no crowded minors)."""
+    ax.set(xscale="log", yscale="log", xlabel=xlabel)
+    ax.set_xticks(list(xs))
+    ax.set_xticklabels([str(x) for x in xs])
+    ax.xaxis.set_minor_formatter(NullFormatter())
