@@ -81,7 +81,10 @@ def _run_one_study(name: str, args, run: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if not hasattr(module, "run_one"):  # a single-shot study (a benchmark)
-        module.run(config, out, quick=args.quick, progress=run and not args.quiet)
+        if run:
+            module.run(config, out, quick=args.quick, progress=not args.quiet)
+        else:
+            module.report(config, out, quick=args.quick)
     else:
         store = Store(out / "runs.sqlite", configs.config_hash(config), config)
         try:

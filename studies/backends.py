@@ -68,6 +68,25 @@ def run(config: dict, out_dir: Path, *, quick: bool, progress: bool) -> None:
     (out_dir / "machine.json").write_text(json.dumps(info, indent=2, default=str))
 
 
+def report(config: dict, out_dir: Path, *, quick: bool) -> None:
+    """Rebuild backends.md and the figure from backends.csv (no new measurement)."""
+    out_dir = Path(out_dir)
+    with open(out_dir / "backends.csv", newline="") as fh:
+        rows = [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    (out_dir / "backends.md").write_text(_markdown(rows, config, quick))
+    _figure(rows, out_dir / "backends_time_vs_N.png")
+
+
+def _number(text: str):
+    """A CSV cell back as the int, float or string it was written from."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
 def _blas() -> str:
     import numpy
 

@@ -21,6 +21,11 @@ def test_backends_study_writes_outputs(tmp_path):
     assert max(float(r["worst_objective_gap"]) for r in single) < 1e-6
     batch = [r for r in rows if r["mode"] == "batch"]
     assert len(batch) == 2 and all(np.isfinite(float(r["median_ms"])) for r in batch)
+    # `report` rebuilds the table from the CSV alone, without measuring again
+    table = (tmp_path / "backends.md").read_text()
+    (tmp_path / "backends.md").unlink()
+    backends.report(c, tmp_path, quick=True)
+    assert (tmp_path / "backends.md").read_text() == table
 
 
 def test_ill_conditioned_instances_are_spd_and_ill_conditioned():
