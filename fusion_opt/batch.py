@@ -114,7 +114,7 @@ def _general(means, covs, criterion, backend):
     else:
         w, status, iters = np.empty((B, N)), np.empty(B, dtype=object), np.zeros(B)
         for b in range(B):
-            sp_b = scale(Ys[b], criterion)
+            sp_b = sp.problem(b)  # already scaled with the batch
             sol = REGISTRY[backend](sp_b.Ys, sp_b.M, criterion)
             w[b], status[b] = _polish(sp_b, to_simplex(sol.w), sol.status)[:2]
             iters[b] = sol.iterations

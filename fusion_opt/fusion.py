@@ -15,6 +15,7 @@ optimality gap of DESIGN §1 at the returned weights.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -59,8 +60,15 @@ def ci(m_a, P_a, m_b, P_b, criterion="trace", backend="clarabel", *, polish=True
     """Pairwise covariance intersection of (m_a (n,), P_a (n, n)) and (m_b, P_b)."""
     means = _stack_pair(m_a, m_b, "m_a", "m_b")
     covs = _stack_pair(P_a, P_b, "P_a", "P_b")
-    result = bci(means, covs, criterion, backend, polish=polish)
-    return _renamed(result, "ci")
+    return _ci_pair(means, covs, criterion, backend, polish=polish)
+
+
+def _ci_pair(means, covs, criterion="trace", backend="clarabel", *, polish=True):
+    """CI of stacked pairs means (2, n), covs (2, n, n): `fuse(method="ci")` and `ci`."""
+    means, covs = check_estimates(means, covs)
+    if len(means) != 2:
+        raise FusionInputError(f"method 'ci' fuses 2 nodes, got N = {len(means)}")
+    return _renamed(bci(means, covs, criterion, backend, polish=polish), "ci")
 
 
 def mbci(means, covs, p_detect, chi, criterion="trace", backend="clarabel", *, polish=True):
@@ -76,8 +84,6 @@ def mbci(means, covs, p_detect, chi, criterion="trace", backend="clarabel", *, p
 
 
 def _renamed(result: FusionResult, method: str) -> FusionResult:
-    from dataclasses import replace
-
     return replace(result, method=method)
 
 
@@ -155,7 +161,7 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
     return float(sp.unscale_gap(criteria.gap(ev.g, w)))
 
 
-METHODS = {"ci": None, "bci": bci, "mbci": mbci, **RULES}
+METHODS = {"ci": _ci_pair, "bci": bci, "mbci": mbci, **RULES}
 
 
 def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **method_args):
@@ -166,9 +172,4 @@ def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **met
     """
     if method not in METHODS:
         raise FusionInputError(f"method must be one of {tuple(METHODS)}, got {method!r}")
-    if method == "ci":
-        means, covs = check_estimates(means, covs)
-        if len(means) != 2:
-            raise FusionInputError(f"method 'ci' fuses 2 nodes, got N = {len(means)}")
-        return ci(means[0], covs[0], means[1], covs[1], criterion, backend, **method_args)
     return METHODS[method](means, covs, criterion=criterion, backend=backend, **method_args)

@@ -29,6 +29,10 @@ class ScaledProblem:
     c: np.ndarray
     criterion: str
 
+    def problem(self, b: int) -> ScaledProblem:
+        """Problem b of a batch (leading axis), as its own ScaledProblem."""
+        return ScaledProblem(self.Ys[b], self.M[b], self.L[b], self.c[b], self.criterion)
+
     def unscale_objective(self, f_scaled):
         """Objective in the original units from the scaled one."""
         if self.criterion == "trace":
