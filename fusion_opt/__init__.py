@@ -11,11 +11,12 @@ Clarabel through CVXPY by default, with an optimality certificate on every resul
 
 from .backends import BACKENDS
 from .batch import fuse_batch
+from .estimates import Estimates
 from .fusion import bci, ci, fuse, mbci, optimality_gap
 from .mbci import detection_scales
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError
 
 __all__ = [
-    "BACKENDS", "BatchFusionResult", "FusionInputError", "FusionResult", "FusionSolverError",
+    "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult", "FusionSolverError",
     "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
 ]

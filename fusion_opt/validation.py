@@ -6,6 +6,8 @@ problem) index and what is wrong, so a bad input never reaches a solver or turns
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from .results import FusionInputError
@@ -14,11 +16,11 @@ CRITERIA = ("trace", "logdet")
 SYMMETRY_RTOL = 1e-8
 
 
-def _where(index: tuple[int, ...]) -> str:
+def _where(index: tuple[int, ...], item: str = "node") -> str:
     """'node 3' or 'problem 2, node 3' for a multi-index (batch..., node)."""
     if len(index) == 1:
-        return f"node {index[0]}"
-    return f"problem {index[:-1] if len(index) > 2 else index[0]}, node {index[-1]}"
+        return f"{item} {index[0]}"
+    return f"problem {index[:-1] if len(index) > 2 else index[0]}, {item} {index[-1]}"
 
 
 def check_criterion(criterion) -> str:
@@ -33,8 +35,8 @@ def check_estimates(means, covs, batch: bool = False) -> tuple[np.ndarray, np.nd
     means (N, n) and covs (N, n, n); with batch=True, (B, N, n) and (B, N, n, n).
     """
     lead = 2 if batch else 1
-    means = _finite_array(means, "means")
-    covs = _finite_array(covs, "covs")
+    means = finite_array(means, "means")
+    covs = finite_array(covs, "covs")
     if means.ndim != lead + 1:
         raise FusionInputError(
             f"means must have shape {'(B, N, n)' if batch else '(N, n)'}, got {means.shape}")
@@ -50,14 +52,30 @@ def check_estimates(means, covs, batch: bool = False) -> tuple[np.ndarray, np.nd
         raise FusionInputError("the state dimension n is 0")
     if batch and means.shape[0] == 0:
         raise FusionInputError("the batch holds no problems (B = 0)")
-    return means, _check_spd(covs)
+    return means, check_spd(covs)
 
 
-def _finite_array(x, name: str) -> np.ndarray:
+def real_array(x, name: str) -> np.ndarray:
+    """x as a float array, refusing what is not an array of real numbers: strings (also
+    numeric ones), mappings, ragged nesting, booleans, complex and object values, each with
+    a message naming the argument (a complex input is never silently truncated)."""
+    if isinstance(x, str | bytes) or isinstance(x, Mapping):
+        raise FusionInputError(f"{name} must be an array of real numbers, got "
+                               f"{type(x).__name__}")
     try:
-        a = np.asarray(x, dtype=float)
+        a = np.asarray(x)
     except (TypeError, ValueError) as exc:
-        raise FusionInputError(f"{name} must be an array of numbers: {exc}") from None
+        raise FusionInputError(f"{name} must be an array of real numbers ({exc})") from None
+    if a.dtype.kind not in "iuf":
+        kind = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes",
+                "O": "objects (ragged or not numbers)"}.get(a.dtype.kind, str(a.dtype))
+        raise FusionInputError(f"{name} must be an array of real numbers, got {kind}")
+    return a.astype(float, copy=False)
+
+
+def finite_array(x, name: str) -> np.ndarray:
+    """real_array(x, name) whose every value is finite."""
+    a = real_array(x, name)
     bad = ~np.isfinite(a)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -65,23 +83,26 @@ def _finite_array(x, name: str) -> np.ndarray:
     return a
 
 
-def _check_spd(covs: np.ndarray) -> np.ndarray:
-    """Symmetric within SYMMETRY_RTOL of its largest entry, and positive definite."""
+def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node") -> np.ndarray:
+    """Symmetric within SYMMETRY_RTOL of its largest entry, and positive definite; returns
+    the symmetrised stack (..., n, n). Messages name `name` and the `item` index."""
+    if covs.size == 0:
+        return covs
     scale = np.abs(covs).max(axis=(-2, -1))
     asym = np.abs(covs - np.swapaxes(covs, -1, -2)).max(axis=(-2, -1))
     bad = asym > SYMMETRY_RTOL * scale
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
         raise FusionInputError(
-            f"covs of {_where(idx)} is not symmetric: max |P - P^T| = {asym[idx]:.3g} "
-            f"exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
+            f"{name} of {_where(idx, item)} is not symmetric: max |P - P^T| = "
+            f"{asym[idx]:.3g} exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
     sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
     ok = _cholesky_ok(sym)
     if not ok.all():
         idx = tuple(int(i) for i in np.argwhere(~ok)[0])
         eig = np.linalg.eigvalsh(sym[idx]).min()
-        raise FusionInputError(
-            f"covs of {_where(idx)} is not positive definite (smallest eigenvalue {eig:.3g})")
+        raise FusionInputError(f"{name} of {_where(idx, item)} is not positive definite "
+                               f"(smallest eigenvalue {eig:.3g})")
     return sym
 
 
@@ -106,7 +127,7 @@ def _cholesky_ok(covs: np.ndarray) -> np.ndarray:
 def per_node(value, n_nodes: int, name: str) -> np.ndarray:
     """A scalar, one value per node (N,), or per problem and node (..., N), as a finite
     float array with last axis N."""
-    a = _finite_array(value, name)
+    a = finite_array(value, name)
     if a.ndim == 0:
         return np.full(n_nodes, float(a))
     if a.shape[-1] != n_nodes:

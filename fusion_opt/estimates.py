@@ -1,0 +1,106 @@
+"""`Estimates`: the one form in which estimates travel between the parts of a network.
+
+A tracker's step, a processing node's step, a replay of recorded tracks and the Stone Soup
+adapter all give the same thing: m estimates of an n-dimensional state, each a mean and a
+covariance with an integer track id, stamped with the time of the step and the node that
+made them.
+
+    Estimates(means (m, n), covs (m, n, n), ids (m,) = arange(m), time=None, node=None)
+
+It is validated on construction (FusionInputError naming the field and the estimate), its
+arrays are read-only copies (covariances symmetrised), and m = 0 is allowed:
+`Estimates.empty(n)`. Track ids are unique within one Estimates; whether an id persists
+from one step to the next is the producer's promise (each tracker's docstring says).
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .results import FusionInputError
+from .validation import check_spd, finite_array, real_array
+
+
+@dataclass(frozen=True, eq=False)
+class Estimates:
+    """m estimates: means (m, n), covs (m, n, n), ids (m,) int64, time (float or None),
+    node (any hashable, or None). `len(e)` is m; `e.n` the state dimension."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    ids: np.ndarray | None = None
+    time: float | None = None
+    node: Hashable | None = None
+
+    def __post_init__(self):
+        means = finite_array(self.means, "means")
+        if means.ndim != 2 or means.shape[1] == 0:
+            raise FusionInputError(f"means must have shape (m, n) with n >= 1, got {means.shape}")
+        m, n = means.shape
+        covs = finite_array(self.covs, "covs")
+        if covs.shape != (m, n, n):
+            raise FusionInputError(f"covs must have shape {(m, n, n)} to match means, got "
+                                   f"{covs.shape}")
+        covs = check_spd(covs, "covs", item="estimate")
+        ids = _ids(self.ids, m)
+        for name, value in (("means", means), ("covs", covs), ("ids", ids)):
+            value = np.array(value, copy=True)
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "time", _time(self.time))
+        if self.node is not None and not isinstance(self.node, Hashable):
+            raise FusionInputError(f"node must be hashable (a name), got "
+                                   f"{type(self.node).__name__}")
+
+    @classmethod
+    def empty(cls, n: int, time: float | None = None, node: Hashable | None = None):
+        """No estimate of an n-dimensional state (a step with nothing to report)."""
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+            raise FusionInputError(f"n must be an integer >= 1, got {n!r}")
+        return cls(np.zeros((0, n)), np.zeros((0, n, n)), None, time, node)
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def n(self) -> int:
+        """The state dimension."""
+        return self.means.shape[1]
+
+    def take(self, indices) -> Estimates:
+        """The estimates at `indices` (positions, not ids), same time and node."""
+        idx = np.asarray(indices, dtype=np.intp).reshape(-1)
+        return Estimates(self.means[idx], self.covs[idx], self.ids[idx], self.time, self.node)
+
+    def __repr__(self) -> str:
+        return (f"Estimates(m={len(self)}, n={self.n}, ids={self.ids.tolist()}, "
+                f"time={self.time}, node={self.node!r})")
+
+
+def _ids(ids, m: int) -> np.ndarray:
+    """Integer track ids (m,), unique; arange(m) when None."""
+    if ids is None:
+        return np.arange(m, dtype=np.int64)
+    a = real_array(ids, "ids")
+    if a.shape != (m,):
+        raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
+    if np.asarray(ids).dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
+        raise FusionInputError("ids must be integers")
+    if m and np.abs(a).max() >= 2**62:
+        raise FusionInputError("ids must fit in a 64-bit integer")
+    out = a.astype(np.int64)
+    if len(np.unique(out)) != m:
+        raise FusionInputError(f"ids must be unique within one Estimates, got {out.tolist()}")
+    return out
+
+
+def _time(time) -> float | None:
+    if time is None:
+        return None
+    if isinstance(time, bool) or not isinstance(time, numbers.Real) or not np.isfinite(time):
+        raise FusionInputError(f"time must be a finite real number or None, got {time!r}")
+    return float(time)
