@@ -14,9 +14,10 @@ from .batch import fuse_batch
 from .estimates import Estimates
 from .fusion import bci, ci, fuse, mbci, optimality_gap
 from .mbci import detection_scales
-from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError
+from .results import (BatchFusionResult, FusionInputError, FusionResult, FusionSolverError,
+                      Status)
 
 __all__ = [
     "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult", "FusionSolverError",
-    "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
+    "Status", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
 ]

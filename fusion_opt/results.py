@@ -8,8 +8,30 @@ Arrays inside results are made read-only so a frozen result cannot be changed in
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
+
+
+class Status(StrEnum):
+    """How a fused estimate was obtained; one set for every rule and backend. A Status is
+    a str, so `r.status == "optimal"` works.
+
+    OPTIMAL: CI weights whose certificate proves them optimal (relative gap within the
+        solver tolerance of `fusion.OPTIMAL_RTOL`).
+    OPTIMAL_INACCURATE: the best weights found, whose certificate (reported in `gap`)
+        falls short of that tolerance.
+    CLOSED_FORM: a rule without a weight optimisation (naive, known-cross, fast-ci, ifci,
+        ei) or a single node: computed by its formula; `gap` is 0.
+
+    A solver that fails raises FusionSolverError instead, whose `status` is a string
+    saying why ("infeasible", "unbounded", "user_limit", "solver_error", "memory_limit",
+    ...).
+    """
+
+    OPTIMAL = "optimal"
+    OPTIMAL_INACCURATE = "optimal_inaccurate"
+    CLOSED_FORM = "closed_form"
 
 
 class FusionInputError(ValueError):
