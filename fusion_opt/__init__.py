@@ -12,12 +12,13 @@ Clarabel through CVXPY by default, with an optimality certificate on every resul
 from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates
-from .fusion import bci, ci, fuse, mbci, optimality_gap
+from .fusion import bci, ci, fuse, mbci, optimality_gap, warmup
+from .limits import limits
 from .mbci import detection_scales
 from .results import (BatchFusionResult, FusionInputError, FusionResult, FusionSolverError,
                       Status)
 
 __all__ = [
     "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult", "FusionSolverError",
-    "Status", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
+    "Status", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "limits", "mbci", "optimality_gap", "warmup",
 ]

@@ -1,175 +1,113 @@
-"""CI, batch CI and modified batch CI: the public fusion functions.
+"""CI, batch CI and modified batch CI: the public fusion functions for one problem.
 
 For node estimates m_i (N, n), P_i (N, n, n) with informations Y_i = P_i^-1 and weights w
 on the simplex chosen to minimise tr P(w) ("trace") or log det P(w) ("logdet"):
 
     P(w)^-1 = sum_i w_i Y_i,      m(w) = P(w) sum_i w_i Y_i m_i.
 
-Every call validates its input, scales the problem (`scaling.py`), asks a backend for the
-weights, maps them exactly onto the simplex, polishes them with the Newton method of
-`backends/newton.py` started there (so the certificate reaches machine precision whatever
-the backend), and reports the
-optimality gap of DESIGN §1 at the returned weights.
+Each function checks its arguments once and hands them to the one fusion path of
+`core.py` (which `fuse_batch` shares): exact prescaling, the weight solver, the polish of
+an inexact solver's weights, and the certificate of DESIGN §1 at the returned weights.
+The options and their defaults are listed once, in `core.py`'s docstring.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
-from . import criteria
-from .backends import EXACT, REGISTRY, newton
-from .mbci import detection_scales
-from .results import FusionInputError, FusionResult, FusionSolverError
-from .rules import RULES
-from .scaling import ScaledProblem, scale
-from .simplex import to_simplex
-from .validation import check_criterion, check_estimates
+from . import core
+from .backends import newton
+from .core import Names
+from .factored import work
+from .results import FusionInputError, FusionResult
+from .validation import real_array
 
-# Interior-point weights below this fraction of the largest are the solver's stand-in for 0.
-_SUPPORT_RTOL = 1e-7
+_PAIR = Names("m_a and m_b", "P_a and P_b", pair=True)
 
 
-def information(covs: np.ndarray) -> np.ndarray:
-    """Y_i = P_i^-1 for covs (..., n, n), symmetrised."""
-    Y = np.linalg.inv(covs)
-    return 0.5 * (Y + np.swapaxes(Y, -1, -2))
-
-
-def _check_backend(backend) -> str:
-    if backend not in REGISTRY:
-        raise FusionInputError(f"backend must be one of {tuple(REGISTRY)}, got {backend!r}")
-    return backend
-
-
-def bci(means, covs, criterion="trace", backend="clarabel", *, polish=True) -> FusionResult:
+def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionResult:
     """Batch covariance intersection of N estimates: means (N, n), covs (N, n, n).
 
     Returns a FusionResult with weights (N,), mean (n,), cov (n, n), objective, gap.
-    polish=False returns the backend's weights as they are (for comparing solvers).
+    backend: a weight solver of fo.BACKENDS (default "newton"); polish=False returns an
+    inexact backend's weights as they are (for comparing solvers).
     """
-    means, covs = check_estimates(means, covs)
-    check_criterion(criterion)
-    _check_backend(backend)
-    return _fuse_weights(means, covs, criterion, backend, polish, method="bci")
+    return fuse(means, covs, "bci", criterion, backend, polish=polish)
 
 
-def ci(m_a, P_a, m_b, P_b, criterion="trace", backend="clarabel", *, polish=True):
+def ci(m_a, P_a, m_b, P_b, criterion="trace", backend=None, *, polish=True) -> FusionResult:
     """Pairwise covariance intersection of (m_a (n,), P_a (n, n)) and (m_b, P_b)."""
     means = _stack_pair(m_a, m_b, "m_a", "m_b")
     covs = _stack_pair(P_a, P_b, "P_a", "P_b")
-    return _ci_pair(means, covs, criterion, backend, polish=polish)
+    req = core.request("ci", criterion, backend, {"polish": polish})
+    return core.run(*core.arrays(means, covs, False, _PAIR), req, False, _PAIR)
 
 
-def _ci_pair(means, covs, criterion="trace", backend="clarabel", *, polish=True):
-    """CI of stacked pairs means (2, n), covs (2, n, n): `fuse(method="ci")` and `ci`."""
-    means, covs = check_estimates(means, covs)
-    if len(means) != 2:
-        raise FusionInputError(f"method 'ci' fuses 2 nodes, got N = {len(means)}")
-    return _renamed(bci(means, covs, criterion, backend, polish=polish), "ci")
-
-
-def mbci(means, covs, p_detect, chi, criterion="trace", backend="clarabel", *, polish=True):
+def mbci(means, covs, p_detect, chi=None, criterion="trace", backend=None, *, growth=None,
+         polish=True) -> FusionResult:
     """Modified batch CI: BCI on Phat_i = P_i / s_i with s = detection_scales(p_detect, chi).
 
-    p_detect in [0, 1] and chi in (0, 1] are scalars or (N,). The returned cov is the
-    modified fused covariance Phat = (sum_i w_i s_i Y_i)^-1.
+    p_detect in [0, 1], and chi in (0, 1] or growth = 1 / chi >= 1 (the paper's chi^-1;
+    give exactly one), each a scalar or (N,). The returned cov is the modified fused
+    covariance Phat = (sum_i w_i s_i Y_i)^-1.
     """
-    means, covs = check_estimates(means, covs)
-    s = detection_scales(p_detect, chi, n_nodes=len(means))
-    result = bci(means, covs / s[:, None, None], criterion, backend, polish=polish)
-    return _renamed(result, "mbci")
+    args = {"p_detect": p_detect, "polish": polish}
+    args |= {k: v for k, v in (("chi", chi), ("growth", growth)) if v is not None}
+    if chi is None and growth is None:
+        args["chi"] = None  # let the core say that one of them is needed
+    return fuse(means, covs, "mbci", criterion, backend, **args)
 
 
-def _renamed(result: FusionResult, method: str) -> FusionResult:
-    return replace(result, method=method)
+def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_args):
+    """Fuse estimates means (N, n), covs (N, n, n) with a named method.
 
-
-def _stack_pair(a, b, name_a, name_b) -> np.ndarray:
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    if a.shape != b.shape:
-        raise FusionInputError(f"{name_a} has shape {a.shape} but {name_b} has {b.shape}")
-    return np.stack([a, b])
-
-
-def _fuse_weights(means, covs, criterion, backend, polish, method) -> FusionResult:
-    Ys = information(covs)
-    if len(Ys) == 1:
-        return _single(means[0], covs[0], criterion, backend, method)
-    sp = scale(Ys, criterion)
-    t0 = time.perf_counter()
-    sol = REGISTRY[backend](sp.Ys, sp.M, criterion)
-    w, status, polish_iters = to_simplex(sol.w), sol.status, 0
-    if polish and backend not in EXACT:
-        w, status, polish_iters = _polish(sp, w, status)
-    wall = time.perf_counter() - t0
-    return _result(means, Ys, sp, w, status, backend, wall, sol.iterations, polish_iters,
-                   method)
-
-
-def _polish(sp: ScaledProblem, w: np.ndarray, status: str):
-    """Newton from the solver's weights with its near-zero weights set to 0; the better
-    certificate of the two wins (the solver's, too, if the Newton method fails)."""
-    start = np.where(w >= _SUPPORT_RTOL * w.max(), w, 0.0)
-    try:
-        sol = newton.solve_one(sp.Ys, sp.M, sp.criterion, w0=start)
-    except FusionSolverError:
-        return w, status, 0
-    ev = criteria.evaluate(sp.Ys, w, sp.criterion, sp.M)
-    before = newton.relative_gap(ev.f, ev.g, w, sp.criterion)
-    if sol.rel_gap[0] <= before:
-        status = "optimal" if sol.converged[0] else status
-        return sol.w[0], status, int(sol.iterations[0])
-    return w, status, int(sol.iterations[0])
-
-
-def _single(mean, cov, criterion, backend, method) -> FusionResult:
-    """N = 1: the estimate itself with weight 1 (no inversion round trip)."""
-    objective = np.trace(cov) if criterion == "trace" else np.linalg.slogdet(cov)[1]
-    return FusionResult(weights=np.ones(1), mean=mean, cov=cov, objective=float(objective),
-                        gap=0.0, status="optimal", backend=backend, solve_time=0.0,
-                        iterations=0, method=method, criterion=criterion)
-
-
-def _result(means, Ys, sp, w, status, backend, wall, iters, polish_iters, method):
-    ev = criteria.evaluate(sp.Ys, w, sp.criterion, sp.M)
-    P = sp.covariance(np.linalg.inv(criteria.fused_information(sp.Ys, w)))
-    mean = P @ np.einsum("i,ijk,ik->j", w, Ys, means)
-    return FusionResult(
-        weights=w, mean=mean, cov=P,
-        objective=float(sp.unscale_objective(ev.f)),
-        gap=float(sp.unscale_gap(criteria.gap(ev.g, w))),
-        status=status, backend=backend, solve_time=wall, iterations=int(iters),
-        method=method, criterion=sp.criterion, polish_iterations=polish_iters)
+    method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, and chi or growth),
+    or a rule of `rules.py`: "naive", "known-cross" (method_args cross), "fast-ci", "ifci",
+    "ici" (N = 2), "ei" (N = 2). The rules take no backend. All options: `core.py`.
+    """
+    names = _PAIR if method == "ci" else Names()
+    req = core.request(method, criterion, backend, dict(method_args))
+    return core.run(*core.arrays(means, covs, False, names), req, False, names)
 
 
 def optimality_gap(covs, weights, criterion="trace") -> float:
-    """The certificate g(w).w - min_i g_i(w) >= f(w) - f* at weights (N,) for covs (N, n, n),
-    in the objective's units (DESIGN §1)."""
-    covs = np.asarray(covs, dtype=float)
-    _, covs = check_estimates(np.zeros(covs.shape[:-1]) if covs.ndim == 3 else covs, covs)
-    check_criterion(criterion)
-    w = np.asarray(weights, dtype=float)
-    if w.shape != (len(covs),):
-        raise FusionInputError(f"weights must have shape ({len(covs)},), got {w.shape}")
+    """The certificate g(w).w - min_i g_i(w) >= f(w) - f* at weights (N,) for covs
+    (N, n, n), in the objective's units (DESIGN §1)."""
+    covs = real_array(covs, "covs")
+    if covs.ndim != 3:
+        raise FusionInputError(f"covs must have shape (N, n, n), got {covs.shape}")
+    req = core.request("bci", criterion, None, {})
+    means, covs = core.arrays(np.zeros(covs.shape[:-1]), covs, False)
+    w = real_array(weights, "weights")
+    N = covs.shape[1]
+    if w.shape != (N,):
+        raise FusionInputError(f"weights must have shape ({N},), got {w.shape}")
     if not np.all(np.isfinite(w)) or (w < 0).any() or abs(w.sum() - 1.0) > 1e-9:
         raise FusionInputError("weights must be finite, >= 0 and sum to 1")
-    sp = scale(information(covs), criterion)
-    ev = criteria.evaluate(sp.Ys, w, criterion, sp.M)
-    return float(sp.unscale_gap(criteria.gap(ev.g, w)))
+    a = core._Arrays(1, N, covs.shape[2])
+    core._prepare(means, covs, np.ones((1, N)), np.zeros((1, N), dtype=np.int64), a,
+                  Names(), False)
+    gap = newton.certificate(a.F[0], w, work(N, covs.shape[2]), req.trace)[0]
+    return float(np.ldexp(gap, a.k[0]) if req.trace else gap)
 
 
-METHODS = {"ci": _ci_pair, "bci": bci, "mbci": mbci, **RULES}
+def warmup(n: int, N: int, criterion="trace", backend=None) -> float:
+    """Fuse one problem of this shape so that later calls pay no first-call cost: the
+    compiled kernels are loaded (compiled on the first call on a machine, then cached on
+    disk) and, for "clarabel" and "scs", CVXPY's program for (n, N, criterion) is built.
+    Returns the seconds it took."""
+    for name, value in (("n", n), ("N", N)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise FusionInputError(f"{name} must be an integer >= 1, got {value!r}")
+    t0 = time.perf_counter()
+    fuse(np.zeros((N, n)), np.broadcast_to(np.eye(n), (N, n, n)), "bci", criterion, backend)
+    return time.perf_counter() - t0
 
 
-def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **method_args):
-    """Fuse estimates means (N, n), covs (N, n, n) with a named rule.
-
-    method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, chi), or a rule of
-    `rules.py`: "naive", "known-cross" (method_args cross), "fast-ci", "ifci", "ici", "ei".
-    """
-    if method not in METHODS:
-        raise FusionInputError(f"method must be one of {tuple(METHODS)}, got {method!r}")
-    return METHODS[method](means, covs, criterion=criterion, backend=backend, **method_args)
+def _stack_pair(a, b, name_a, name_b) -> np.ndarray:
+    a, b = real_array(a, name_a), real_array(b, name_b)
+    if a.shape != b.shape:
+        raise FusionInputError(f"{name_a} has shape {a.shape} but {name_b} has {b.shape}")
+    return np.stack([a, b])

@@ -50,24 +50,42 @@ class FusionSolverError(RuntimeError):
         return type(self), (self.backend, self.status, self.detail)
 
 
-def _frozen(a) -> np.ndarray:
-    a = np.array(a, dtype=float, copy=True)
+def status_array(status) -> np.ndarray:
+    """A read-only object array of Status from Status values or their strings."""
+    values = np.asarray(status, dtype=object).ravel().tolist()
+    table = {v: Status(v) for v in set(values)}
+    out = np.empty(len(values), dtype=object)
+    out[:] = [table[v] for v in values]
+    out.setflags(write=False)
+    return out
+
+
+WEIGHTS_ARE = {
+    "ci_weights": "CI weights on the simplex",
+    "gain_shares": "gain shares tr(K_i)/n (no CI weights; they sum to 1 and may be negative)",
+}
+
+
+def _frozen(a, dtype=np.float64) -> np.ndarray:
+    """A read-only copy (results own their arrays)."""
+    a = a.copy() if type(a) is np.ndarray and a.dtype == dtype else np.array(a, dtype=dtype)
     a.setflags(write=False)
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class FusionResult:
     """One fused estimate.
 
-    weights (N,) on the simplex (for the rules naive, known-cross and ei, which have no CI
-    weights, the gain shares tr(K_i) / n, which sum to 1 and may be negative for
-    known-cross); mean (n,); cov (n, n) the fused covariance (for MBCI the
-    modified one, Phat); objective is tr(cov) ("trace") or log det(cov) ("logdet");
-    gap the optimality certificate of DESIGN §1 at `weights` (f(w) - f* <= gap), in the
-    objective's units; solve_time the wall time of the weight solve in seconds (solver and
-    polish); iterations the solver's, polish_iterations those of the Newton polish.
-    Rules without an optimisation (naive, fast-ci, ...) report gap 0 and status "closed-form".
+    weights (N,): the CI weights on the simplex, or for the rules without them (naive,
+    known-cross, ei) the gain shares tr(K_i) / n, which sum to 1 and may be negative;
+    `weights_are` says which ("ci_weights" or "gain_shares"). mean (n,); cov (n, n) the
+    fused covariance (for MBCI the modified one, Phat); objective tr(cov) ("trace") or
+    log det(cov) ("logdet"); gap the optimality certificate of DESIGN §1 at `weights`
+    (f(w) - f* <= gap), in the objective's units (0 for rules without an optimisation);
+    status a `Status`; backend the weight solver; solve_time the wall time of the weight
+    solve in seconds (solver and polish); iterations the solver's, polish_iterations those
+    of the Newton polish.
     """
 
     weights: np.ndarray
@@ -75,24 +93,35 @@ class FusionResult:
     cov: np.ndarray
     objective: float
     gap: float
-    status: str
+    status: Status
     backend: str
     solve_time: float
     iterations: int
     method: str = "bci"
     criterion: str = "trace"
     polish_iterations: int = 0
+    weights_are: str = "ci_weights"
 
     def __post_init__(self):
         for name in ("weights", "mean", "cov"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
+        if type(self.status) is not Status:
+            object.__setattr__(self, "status", Status(self.status))
+
+    def __repr__(self) -> str:
+        with np.printoptions(precision=6, suppress=False, threshold=20, edgeitems=3):
+            return (f"FusionResult(method={self.method!r}, criterion={self.criterion!r}, "
+                    f"backend={self.backend!r}, status={self.status.value!r},\n"
+                    f"  objective={self.objective:.12g}, gap={self.gap:.3g},\n"
+                    f"  weights={self.weights}  # {WEIGHTS_ARE[self.weights_are]}\n"
+                    f"  mean={self.mean},\n  cov={_indent(self.cov)})")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class BatchFusionResult:
-    """B fused estimates as arrays: weights (B, N), mean (B, n), cov (B, n, n),
-    objective (B,), gap (B,), status (B,) strings, iterations (B,); solve_time is the
-    wall time of the whole batch in seconds."""
+    """B fused estimates as arrays: weights (B, N) (as `weights_are` says, see
+    FusionResult), mean (B, n), cov (B, n, n), objective (B,), gap (B,), status (B,) of
+    `Status`, iterations (B,) int; solve_time is the wall time of the whole batch (s)."""
 
     weights: np.ndarray
     mean: np.ndarray
@@ -105,10 +134,29 @@ class BatchFusionResult:
     solve_time: float
     method: str = "bci"
     criterion: str = "trace"
+    weights_are: str = "ci_weights"
 
     def __post_init__(self):
-        for name in ("weights", "mean", "cov", "objective", "gap", "iterations"):
+        for name in ("weights", "mean", "cov", "objective", "gap"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
-        status = np.array(self.status, dtype=object, copy=True)
-        status.setflags(write=False)
-        object.__setattr__(self, "status", status)
+        object.__setattr__(self, "iterations", _frozen(self.iterations, np.int64))
+        object.__setattr__(self, "status", status_array(self.status))
+
+    def __len__(self) -> int:
+        return len(self.objective)
+
+    def __repr__(self) -> str:
+        B, N = self.weights.shape
+        counts = ", ".join(f"{s.value}: {int((self.status == s).sum())}" for s in Status
+                           if (self.status == s).any())
+        scale = np.abs(self.objective) if self.criterion == "trace" else 1.0
+        worst = float(np.max(self.gap / scale)) if B else 0.0
+        return (f"BatchFusionResult(B={B}, N={N}, n={self.mean.shape[1]}, "
+                f"method={self.method!r}, criterion={self.criterion!r}, "
+                f"backend={self.backend!r}, status {{{counts}}}, worst relative gap "
+                f"{worst:.2g}, solve_time={self.solve_time:.3g} s; weights are "
+                f"{WEIGHTS_ARE[self.weights_are]})")
+
+
+def _indent(a: np.ndarray) -> str:
+    return str(a).replace("\n", "\n      ")

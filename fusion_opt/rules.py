@@ -40,15 +40,35 @@ import time
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .backends.closed_form import diagonalise_covariances
-from .results import FusionInputError, FusionResult
-from .validation import SYMMETRY_RTOL, check_criterion, check_estimates
+from typing import NamedTuple
+
+from .results import FusionInputError, Status
+from .validation import SYMMETRY_RTOL
+
+
+class RuleOutput(NamedTuple):
+    """weights (N,), mean (n,), cov (n, n), status, and what the weights are."""
+
+    weights: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    status: Status
+    weights_are: str
+
+
+def diagonalise_covariances(Pa, Pb):
+    """lam (n,), T (n, n) with Pa = T diag(1/lam) T^T, Pb = T T^T."""
+    L = np.linalg.cholesky(Pa + Pb)
+    Li = np.linalg.inv(L)
+    nu, U = np.linalg.eigh(Li @ Pa @ Li.T)
+    nu = np.clip(nu, np.finfo(float).eps, 1 - np.finfo(float).eps)
+    return (1.0 - nu) / nu, (L @ U) * np.sqrt(1.0 - nu)
 
 EI_EPS = 1e-8
 _ICI_GRID = 21
 
 
-def naive(means, covs, criterion="trace", backend=None) -> FusionResult:
+def naive(means, covs, criterion="trace") -> FusionResult:
     """Independent (Kalman) fusion of means (N, n), covs (N, n, n)."""
     means, covs, t0 = _start(means, covs, criterion)
     Ys = np.linalg.inv(covs)
@@ -56,7 +76,7 @@ def naive(means, covs, criterion="trace", backend=None) -> FusionResult:
     return _result(means, P @ Ys, P, None, criterion, "naive", t0)
 
 
-def known_cross(means, covs, criterion="trace", backend=None, *, cross=None) -> FusionResult:
+def known_cross(means, covs, criterion="trace", *, cross=None) -> FusionResult:
     """BLUE given the joint covariance: cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), with
     cross[i, i] equal to covs[i]."""
     means, covs, t0 = _start(means, covs, criterion)
@@ -69,14 +89,14 @@ def known_cross(means, covs, criterion="trace", backend=None, *, cross=None) -> 
     return _result(means, gains, P, None, criterion, "known-cross", t0)
 
 
-def fast_ci(means, covs, criterion="trace", backend=None) -> FusionResult:
+def fast_ci(means, covs, criterion="trace") -> FusionResult:
     """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002)."""
     means, covs, t0 = _start(means, covs, criterion)
     inv_tr = 1.0 / np.trace(covs, axis1=-2, axis2=-1)
     return _ci_with(means, covs, inv_tr / inv_tr.sum(), criterion, "fast-ci", t0)
 
 
-def ifci(means, covs, criterion="trace", backend=None) -> FusionResult:
+def ifci(means, covs, criterion="trace") -> FusionResult:
     """CI with the determinant weights of Franken & Hupper (2005) (module docstring)."""
     means, covs, t0 = _start(means, covs, criterion)
     Ys = np.linalg.inv(covs)
@@ -85,7 +105,7 @@ def ifci(means, covs, criterion="trace", backend=None) -> FusionResult:
     return _ci_with(means, covs, num / num.sum(), criterion, "ifci", t0)
 
 
-def ici(means, covs, criterion="trace", backend=None) -> FusionResult:
+def ici(means, covs, criterion="trace") -> FusionResult:
     """Inverse covariance intersection of N = 2 estimates (module docstring)."""
     means, covs, t0 = _start(means, covs, criterion, pair="ici")
     Pa, Pb = covs
@@ -107,10 +127,10 @@ def ici(means, covs, criterion="trace", backend=None) -> FusionResult:
     P = 0.5 * (P + P.T)
     gains = np.stack([P @ (Ya - w * Ginv), P @ (Yb - (1.0 - w) * Ginv)])
     return _result(means, gains, P, np.array([w, 1.0 - w]), criterion, "ici", t0,
-                   status="optimal")
+                   status=Status.OPTIMAL)
 
 
-def ei(means, covs, criterion="trace", backend=None) -> FusionResult:
+def ei(means, covs, criterion="trace") -> FusionResult:
     """Ellipsoidal intersection of N = 2 estimates (module docstring)."""
     means, covs, t0 = _start(means, covs, criterion, pair="ei")
     lam, T = diagonalise_covariances(covs[0], covs[1])  # P_a = T diag(1/lam) T^T
@@ -130,13 +150,11 @@ def ei(means, covs, criterion="trace", backend=None) -> FusionResult:
 
 RULES = {"naive": naive, "known-cross": known_cross, "fast-ci": fast_ci, "ifci": ifci,
          "ici": ici, "ei": ei}
+RULE_ARGS = {name: frozenset({"cross"} if name == "known-cross" else ()) for name in RULES}
+PAIR_ONLY = frozenset({"ici", "ei"})
 
 
 def _start(means, covs, criterion, pair=None):
-    means, covs = check_estimates(means, covs)
-    check_criterion(criterion)
-    if pair and len(means) != 2:
-        raise FusionInputError(f"method {pair!r} fuses 2 nodes, got N = {len(means)}")
     return means, covs, time.perf_counter()
 
 
@@ -178,11 +196,9 @@ def _objective(P, criterion) -> float:
     return float(np.trace(P)) if criterion == "trace" else float(np.linalg.slogdet(P)[1])
 
 
-def _result(means, gains, P, weights, criterion, method, t0, status="closed-form"):
+def _result(means, gains, P, weights, criterion, method, t0, status=Status.CLOSED_FORM):
+    are = "gain_shares" if weights is None else "ci_weights"
     if weights is None:
         weights = np.trace(gains, axis1=-2, axis2=-1) / P.shape[0]
     mean = np.einsum("ijk,ik->j", gains, means)
-    return FusionResult(weights=weights, mean=mean, cov=P, objective=_objective(P, criterion),
-                        gap=0.0, status=status, backend="closed-form",
-                        solve_time=time.perf_counter() - t0, iterations=0, method=method,
-                        criterion=criterion)
+    return RuleOutput(weights, mean, 0.5 * (P + P.T), status, are)

@@ -59,6 +59,8 @@ def real_array(x, name: str) -> np.ndarray:
     """x as a float array, refusing what is not an array of real numbers: strings (also
     numeric ones), mappings, ragged nesting, booleans, complex and object values, each with
     a message naming the argument (a complex input is never silently truncated)."""
+    if type(x) is np.ndarray and x.dtype == np.float64:  # the common case, at no cost
+        return x
     if isinstance(x, str | bytes) or isinstance(x, Mapping):
         raise FusionInputError(f"{name} must be an array of real numbers, got "
                                f"{type(x).__name__}")
@@ -136,20 +138,23 @@ def per_node(value, n_nodes: int, name: str) -> np.ndarray:
     return a
 
 
-def check_detection(p_detect, chi, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+def check_detection(p_detect, chi, n_nodes: int, chi_name: str = "chi"):
     """p_detect in [0, 1] and chi in (0, 1], each a scalar, (N,) or (..., N); returned
-    broadcast to one shape."""
+    broadcast to one shape. chi_name names chi in messages ("growth" when the user gave
+    the growth factor, whose inverse chi is)."""
     p = per_node(p_detect, n_nodes, "p_detect")
-    c = per_node(chi, n_nodes, "chi")
+    c = per_node(chi, n_nodes, chi_name)
     try:
         p, c = np.broadcast_arrays(p, c)
     except ValueError:
         raise FusionInputError(
-            f"p_detect {p.shape} and chi {c.shape} do not broadcast together") from None
-    for name, a, bad in (("p_detect", p, (p < 0) | (p > 1)), ("chi", c, (c <= 0) | (c > 1))):
+            f"p_detect {p.shape} and {chi_name} {c.shape} do not broadcast together") from None
+    checks = (("p_detect", p, (p < 0) | (p > 1), "must lie in [0, 1]"),
+              (chi_name, c, (c <= 0) | (c > 1),
+               "must lie in (0, 1]" if chi_name == "chi" else "must be >= 1"))
+    for name, a, bad, rule in checks:
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            interval = "[0, 1]" if name == "p_detect" else "(0, 1]"
-            raise FusionInputError(
-                f"{name} of {_where(idx)} must lie in {interval}, got {a[idx]}")
+            value = a[idx] if name != "growth" else 1.0 / a[idx]
+            raise FusionInputError(f"{name} of {_where(idx)} {rule}, got {value}")
     return p, c

@@ -1,16 +1,23 @@
 """Weight solvers (backends) and their registry.
 
-A backend maps a scaled problem (Ys (N, n, n), M (n, n), criterion; see `scaling.py`) to
-weights near the simplex. `fusion.py` puts them exactly on the simplex, polishes them and
-computes the optimality certificate, the same way for every backend.
+"newton" and "closed-form" (N = 2) are native and compiled (`newton.py`, `closed_form.py`):
+the fusion core calls them once on the factors of a whole batch. The others solve one
+congruence-scaled problem (Ys (N, n, n), M (n, n), criterion; `scaling.py`) and return
+weights near the simplex, which the core puts exactly on the simplex, polishes by Newton
+steps and certifies: "clarabel" (CVXPY with Clarabel, the conic reference), "scs" (CVXPY
+with SCS), "clarabel-direct" (the same conic program handed to Clarabel without CVXPY) and
+"slsqp" (scipy, the baseline a user would write).
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..results import FusionSolverError
 
 
 @dataclass(frozen=True)
@@ -25,42 +32,34 @@ class WeightSolution:
     solver_time: float | None = None
 
 
-def _cvxpy(name):
-    def solve(Ys, M, criterion):
-        from .cvxpy_backends import solve as cvx_solve
+def with_attempts(backend: str, attempts: Sequence[dict],
+                  once: Callable[[dict], WeightSolution]) -> WeightSolution:
+    """The first usable solution of once(options) over the option sets in turn (a conic
+    solver that fails is tried once more with other settings); FusionSolverError with the
+    last failure's status otherwise. `once` raises FusionSolverError on a failed status."""
+    error = FusionSolverError(backend, "solver_error", "no attempt was made")
+    for options in attempts:
+        try:
+            return once(options)
+        except FusionSolverError as exc:
+            error = exc
+    raise error
 
-        return cvx_solve(name, Ys, M, criterion)
+
+def _lazy(module: str, *args):
+    """The `solve` of a backend module, imported on first use (CVXPY is slow to import)."""
+
+    def solve(Ys, M, criterion):
+        return importlib.import_module(f".{module}", __name__).solve(*args, Ys, M, criterion)
 
     return solve
 
 
-def _newton(Ys, M, criterion):
-    """One problem: `newton.solve_one`, or for N = 2 the 1-D Newton of `closed_form`."""
-    import time
-
-    from . import closed_form, newton
-
-    if len(Ys) == 2:
-        return closed_form.solve(Ys, M, criterion)
-    t0 = time.perf_counter()
-    sol = newton.solve_one(Ys, M, criterion)
-    status = "optimal" if sol.converged[0] else "optimal_inaccurate"
-    wall = time.perf_counter() - t0
-    return WeightSolution(sol.w[0], status, int(sol.iterations[0]), wall, wall)
-
-
-def _native(module):
-    """The `solve` of a backend module, imported on first use (as the CVXPY ones are)."""
-
-    def solve(Ys, M, criterion):
-        return importlib.import_module(f".{module}", __name__).solve(Ys, M, criterion)
-
-    return solve
-
-
-REGISTRY = {"clarabel": _cvxpy("clarabel"), "scs": _cvxpy("scs"),
-            "clarabel-direct": _native("clarabel_direct"), "newton": _newton,
-            "closed-form": _native("closed_form"), "slsqp": _native("slsqp")}
-# Backends whose weights are exact to the certificate's rounding level: not polished.
+REGISTRY = {"clarabel": _lazy("cvxpy_backends", "clarabel"),
+            "scs": _lazy("cvxpy_backends", "scs"),
+            "clarabel-direct": _lazy("clarabel_direct"),
+            "slsqp": _lazy("slsqp")}
+# Native, compiled and exact to the certificate's rounding level: called by the core on
+# whole batches, never polished.
 EXACT = frozenset({"newton", "closed-form"})
-BACKENDS = tuple(REGISTRY)
+BACKENDS = ("newton", "closed-form", "clarabel", "clarabel-direct", "scs", "slsqp")

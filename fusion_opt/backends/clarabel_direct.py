@@ -35,7 +35,7 @@ from ..results import FusionSolverError
 from ..svec import index as svec_index
 from ..svec import scale as svec_scale
 from ..svec import upper
-from . import WeightSolution
+from . import WeightSolution, with_attempts
 
 BACKEND = "clarabel-direct"
 SETTINGS = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "tol_ktratio": 1e-9,
@@ -169,17 +169,18 @@ def solve(Ys: np.ndarray, M: np.ndarray, criterion: str) -> WeightSolution:
     """Ys (N, n, n), M (n, n) of a scaled problem; returns weights and solver stats."""
     t0 = time.perf_counter()
     A, b, tpl = problem_data(Ys, M, criterion)
-    for options in ATTEMPTS:
+
+    def once(options) -> WeightSolution:
         try:
             sol = clarabel.DefaultSolver(tpl.P, tpl.q, A, b, tpl.cones, settings(options)).solve()
         except Exception as exc:  # noqa: BLE001 (Clarabel raises bare exceptions on bad data)
-            error = FusionSolverError(BACKEND, "solver_error", str(exc))
-            continue
+            raise FusionSolverError(BACKEND, "solver_error", str(exc)) from None
         raw = str(sol.status)
         status = STATUS.get(raw, "solver_error")
         w = np.array(sol.x[:len(Ys)])
-        if status in _OK and np.all(np.isfinite(w)):
-            return WeightSolution(w, status, int(sol.iterations), time.perf_counter() - t0,
-                                  sol.solve_time)
-        error = FusionSolverError(BACKEND, status, f"Clarabel status {raw}")
-    raise error
+        if status not in _OK or not np.all(np.isfinite(w)):
+            raise FusionSolverError(BACKEND, status, f"Clarabel status {raw}")
+        return WeightSolution(w, status, int(sol.iterations), time.perf_counter() - t0,
+                              sol.solve_time)
+
+    return with_attempts(BACKEND, ATTEMPTS, once)

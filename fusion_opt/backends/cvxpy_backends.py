@@ -15,7 +15,7 @@ import numpy as np
 
 from ..programs import program, set_data
 from ..results import FusionSolverError
-from . import WeightSolution, clarabel_direct
+from . import WeightSolution, clarabel_direct, with_attempts
 
 # Each solver with the option sets to try in turn (Clarabel's second drops chordal
 # decomposition, see clarabel_direct.ATTEMPTS).
@@ -33,19 +33,20 @@ def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> Weight
     prog = program(n, N, criterion, solver)
     set_data(prog, Ys, M)
     t0 = time.perf_counter()
-    for options in attempts:
+
+    def once(options) -> WeightSolution:
         try:
             _solve(prog, solver, options)
         except cp.SolverError as exc:
-            error = FusionSolverError(backend, "solver_error", str(exc))
-            continue
+            raise FusionSolverError(backend, "solver_error", str(exc)) from None
         status, w = prog.problem.status, prog.w.value
-        if status in _OK and w is not None and np.all(np.isfinite(w)):
-            stats = prog.problem.solver_stats
-            return WeightSolution(np.array(w), _OK[status], int(stats.num_iters or 0),
-                                  time.perf_counter() - t0, stats.solve_time)
-        error = FusionSolverError(backend, str(status))
-    raise error
+        if status not in _OK or w is None or not np.all(np.isfinite(w)):
+            raise FusionSolverError(backend, str(status))
+        stats = prog.problem.solver_stats
+        return WeightSolution(np.array(w), _OK[status], int(stats.num_iters or 0),
+                              time.perf_counter() - t0, stats.solve_time)
+
+    return with_attempts(backend, attempts, once)
 
 
 def _solve(prog, solver, options) -> None:

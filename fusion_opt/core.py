@@ -1,0 +1,417 @@
+"""One path for every fusion: `fuse`, `fuse_batch`, `ci`, `bci` and `mbci` all come here.
+
+A request is B problems of N estimates of an n-dimensional state (a single problem is a
+batch of one, so it gives the same numbers alone or inside any batch):
+
+    1. request  method, criterion, backend and the method's own arguments, checked by name
+    2. arrays   means (B, N, n), covs (B, N, n, n): real float arrays of those shapes
+    3. prepare  (compiled) checks every value; exact power-of-two prescaling; factors
+    4. weights  "newton" / "closed-form": compiled, every problem in one call; another
+                backend problem by problem on the congruence-scaled data, then polished by
+                the compiled Newton method from its weights (the better certificate wins);
+                a rule of `rules.py` gives its estimate directly
+    5. assemble (compiled) fused mean, covariance, objective and certificate per problem
+    6. status   Status.OPTIMAL when the relative certificate is within OPTIMAL_RTOL
+
+Options, the same for fuse and fuse_batch (their defaults are set here and nowhere else):
+
+    method     "bci" (default); "ci" (N = 2); "mbci"; or a rule of rules.py: "naive",
+               "known-cross", "fast-ci", "ifci", "ici" (N = 2), "ei" (N = 2)
+    criterion  "trace" (default) or "logdet"
+    backend    a weight solver of BACKENDS, for ci, bci and mbci; default "newton" (exact,
+               compiled, with its certificate; "clarabel" is the conic reference). The
+               rules have no weight solver and refuse a backend.
+    p_detect   mbci: detection probabilities in [0, 1]: a scalar, (N,), or (B, N) in a batch
+    chi | growth   mbci: exactly one; chi in (0, 1], or growth = 1 / chi >= 1 (the paper's
+               chi^-1); same shapes as p_detect
+    cross      known-cross: the joint error covariance blocks (N, N, n, n), (B, N, N, n, n)
+               in a batch
+    polish     True (default): polish a conic or SLSQP backend's weights by Newton steps
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import rules
+from .assemble import assemble
+from .exact import fuse_exact
+from .backends import BACKENDS, EXACT, REGISTRY, newton
+from .limits import conic_bytes, limits, working_bytes
+from .mbci import detection_split
+from .prepare import ASYMMETRIC, COVS_NONFINITE, MEANS_NONFINITE, NOT_PD, SPREAD, prepare
+from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
+from .scaling import conic_data
+from .simplex import to_simplex
+from .validation import CRITERIA, SYMMETRY_RTOL, real_array
+
+DEFAULT_BACKEND = "newton"
+# A result is OPTIMAL when its certificate proves f(w) - f* <= OPTIMAL_RTOL |f| ("trace";
+# absolute for "logdet", where it bounds log det P(w) - log det P*).
+OPTIMAL_RTOL = 1e-10
+CI_METHODS = ("ci", "bci", "mbci")
+METHODS = (*CI_METHODS, *rules.RULES)
+PAIR_METHODS = frozenset({"ci", *rules.PAIR_ONLY})
+_ARGS = {"ci": frozenset(), "bci": frozenset(),
+         "mbci": frozenset({"p_detect", "chi", "growth"}), **rules.RULE_ARGS}
+_CONIC = frozenset({"clarabel", "clarabel-direct"})
+# Interior-point weights below this fraction of the largest are the solver's stand-in for 0.
+_SUPPORT_RTOL = 1e-7
+
+
+@dataclass(frozen=True)
+class Request:
+    """A checked request: the method, criterion and resolved backend, and its arguments."""
+
+    method: str
+    criterion: str
+    backend: str | None
+    polish: bool
+    args: dict
+
+    @property
+    def trace(self) -> bool:
+        return self.criterion == "trace"
+
+
+@dataclass(frozen=True)
+class Names:
+    """What the caller called the arrays, for messages: `ci` says m_a and P_b where
+    `fuse` says means and covs of node 1."""
+
+    means: str = "means"
+    covs: str = "covs"
+    pair: bool = False
+
+    def of(self, array: str, node: int, problem: int | None) -> str:
+        if self.pair:
+            return f"{'m' if array == 'means' else 'P'}_{'ab'[node]}"
+        where = f"node {node}" if problem is None else f"problem {problem}, node {node}"
+        return f"{getattr(self, array)} of {where}"
+
+
+_NAMES = Names()
+
+
+def request(method, criterion, backend, args: dict) -> Request:
+    """Check the options by name (module docstring); nothing is computed yet."""
+    if not isinstance(method, str) or method not in METHODS:
+        raise FusionInputError(f"method must be one of {METHODS}, got {method!r}")
+    if not isinstance(criterion, str) or criterion not in CRITERIA:
+        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    polish = args.pop("polish", True)
+    if not isinstance(polish, bool):
+        raise FusionInputError(f"polish must be True or False, got {polish!r}")
+    stray = sorted(set(args) - _ARGS[method])
+    if stray:
+        takes = sorted(_ARGS[method]) or "no other argument"
+        raise FusionInputError(f"method {method!r} takes {takes}, not {stray}")
+    if method in rules.RULES:
+        if backend is not None:
+            raise FusionInputError(f"method {method!r} has no weight solver: leave backend "
+                                   f"unset (got {backend!r})")
+        return Request(method, criterion, None, polish, args)
+    if backend is None:
+        backend = DEFAULT_BACKEND
+    if not isinstance(backend, str) or backend not in BACKENDS:
+        raise FusionInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if method == "mbci" and "p_detect" not in args:
+        raise FusionInputError("method 'mbci' needs p_detect, and chi or growth")
+    return Request(method, criterion, backend, polish, args)
+
+
+def arrays(means, covs, batch: bool, names: Names = _NAMES):
+    """means (B, N, n), covs (B, N, n, n) as C-contiguous float arrays (a single problem
+    gains a leading axis of 1); shapes checked by name."""
+    means, covs = real_array(means, names.means), real_array(covs, names.covs)
+    lead = 2 if batch else 1
+    want = "(B, N, n)" if batch else "(N, n)"
+    if means.ndim != lead + 1:
+        raise FusionInputError(f"{names.means} must have shape {want}, got {means.shape}")
+    if covs.ndim != lead + 2 or covs.shape[-1] != covs.shape[-2]:
+        raise FusionInputError(f"{names.covs} must have shape {want[:-1]}, n), got "
+                               f"{covs.shape}")
+    if covs.shape[:-1] != means.shape:
+        raise FusionInputError(f"{names.covs} shape {covs.shape} does not match "
+                               f"{names.means} shape {means.shape}")
+    if 0 in means.shape:
+        what = dict(zip("BNn", means.shape if batch else (1, *means.shape), strict=True))
+        zero = [k for k, v in what.items() if v == 0]
+        raise FusionInputError(f"{names.means} and {names.covs} are empty ({zero[0]} = 0)")
+    if not batch:
+        means, covs = means[None], covs[None]
+    return np.ascontiguousarray(means), np.ascontiguousarray(covs)
+
+
+def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
+    """Fuse checked arrays (B, N, n), (B, N, n, n): a FusionResult (batch=False, B = 1) or
+    a BatchFusionResult."""
+    B, N, n = means.shape
+    if req.method in PAIR_METHODS and N != 2:
+        raise FusionInputError(f"method {req.method!r} fuses 2 nodes, got N = {N}")
+    if req.backend == "closed-form" and N != 2:
+        raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
+    q, E = _detection(req, B, N, batch)
+    work = _Arrays.of(B, N, n)
+    if req.method in rules.RULES:
+        _prepare(means, covs, q, E, work, names, batch)
+        out = _rules(req, means, covs, work.k, batch)
+        _check_finite(req, out)
+    elif req.backend in EXACT:
+        out = _exact(req, means, covs, q, E, work, names, batch)
+    else:
+        out = _conic(req, means, covs, q, E, work, names, batch)
+    return _result(req, out, batch)
+
+
+def _detection(req, B, N, batch):
+    """MBCI's scales as covariance divisors q (B, N) in [1, 2) times 2^E; 1 otherwise."""
+    if req.method != "mbci":
+        return _unit_scales(B, N)
+    a = req.args
+    q, E = detection_split(a["p_detect"], a.get("chi"), N, growth=a.get("growth"))
+    if q.shape != (N,) and not (batch and q.shape == (B, N)):
+        want = f"a scalar, ({N},) or ({B}, {N})" if batch else f"a scalar or ({N},)"
+        raise FusionInputError(f"p_detect and chi (or growth) must be {want}, got {q.shape}")
+    return np.broadcast_to(q, (B, N)).copy(), np.broadcast_to(E, (B, N)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _unit_scales(B, N):
+    """q = 1, E = 0 (B, N), read-only and shared: no scaling."""
+    q, E = np.ones((B, N)), np.zeros((B, N), dtype=np.int64)
+    q.setflags(write=False)
+    E.setflags(write=False)
+    return q, E
+
+
+class _Arrays:
+    """The arrays a batch of B problems of N nodes in dimension n is computed into."""
+
+    def __init__(self, B, N, n):
+        self.F = np.empty((B, N, n, n))
+        self.vertex = np.empty((B, N, 2))
+        self.pnorm = np.empty((B, N))
+        self.W = np.empty((B, N))
+        self.rel = np.empty(B)
+        self.mean = np.empty((B, n))
+        self.cov = np.empty((B, n, n))
+        self.stats = np.empty((B, 3))
+        self.k = np.empty(B, dtype=np.int64)
+        self.iters = np.empty(B, dtype=np.int64)
+        self.where = np.zeros(3, dtype=np.int64)
+
+    @staticmethod
+    def of(B, N, n) -> _Arrays:
+        """New arrays for a batch; for one problem, this thread's arrays of that shape,
+        reused (results copy what they keep), since allocating them costs as much as
+        fusing a small problem."""
+        if B != 1:
+            return _Arrays(B, N, n)
+        cache = _THREAD.__dict__.setdefault("arrays", {})
+        if (N, n) not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[N, n] = _Arrays(1, N, n)
+        return cache[N, n]
+
+
+_THREAD = threading.local()
+
+
+def _prepare(means, covs, q, E, a, names, batch):
+    code = prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
+    if code:
+        raise _input_error(code, a.where, means, covs, names, batch)
+
+
+def _exact(req, means, covs, q, E, a, names, batch):
+    """newton and closed-form: one compiled call; a problem whose certificate is not
+    within OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
+    _check_memory(req, covs.shape[2], covs.shape[1])
+    t0 = time.perf_counter()
+    code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
+                      a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
+    if code > 0:
+        raise _input_error(code, a.where, means, covs, names, batch)
+    if (a.rel[0] if len(a.rel) == 1 else a.rel.max()) > OPTIMAL_RTOL:
+        _rescue(req, means, covs, q, E, a)
+    if code < 0:
+        raise _overflow()
+    return _ci_output(a, time.perf_counter() - t0, 0)
+
+
+def _conic(req, means, covs, q, E, a, names, batch):
+    """A backend of REGISTRY problem by problem on the congruence-scaled data, then the
+    Newton polish from its weights, and the fused estimates."""
+    B, N, n = means.shape
+    _prepare(means, covs, q, E, a, names, batch)
+    _check_memory(req, n, N)
+    t0 = time.perf_counter()
+    Ys, M = np.empty((B, N, n, n)), np.empty((B, n, n))
+    conic_data(a.F, Ys, M)
+    for b in range(B):
+        sol = REGISTRY[req.backend](Ys[b], M[b], req.criterion)
+        a.W[b], a.iters[b] = to_simplex(sol.w), sol.iterations
+    polish_iters = _polish(a, req.trace) if req.polish else 0
+    solve_time = time.perf_counter() - t0
+    if not assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, req.trace, a.mean,
+                    a.cov, a.stats):
+        raise _overflow()
+    return _ci_output(a, solve_time, polish_iters)
+
+
+def _polish(a, trace) -> int:
+    """Newton from the solver's weights a.W, its near-zero weights set to 0; per problem
+    the better certificate of the two wins. Returns the largest polish iteration count."""
+    W = a.W
+    start = np.where(W >= _SUPPORT_RTOL * W.max(-1, keepdims=True), W, 0.0)
+    start /= start.sum(-1, keepdims=True)
+    Wp, rel_p, piters = np.empty_like(W), np.empty(len(W)), np.zeros(len(W), np.int64)
+    newton.solve(a.F, trace, start, True, Wp, rel_p, piters)
+    rel_0 = np.empty(len(W))
+    newton.certificates(a.F, W, trace, rel_0)
+    better = rel_p <= rel_0
+    W[better] = Wp[better]
+    return int(piters[better].max(initial=0))
+
+
+def _rescue(req, means, covs, q, E, a):
+    """Problems whose native certificate is not within OPTIMAL_RTOL (rounding level on a
+    hard problem) are solved again by "clarabel-direct" and polished; per problem, the
+    result with the better certificate is kept."""
+    for b in np.flatnonzero(a.rel > OPTIMAL_RTOL):
+        one = _Arrays(1, *a.F.shape[1:3])
+        try:
+            _conic(Request(req.method, req.criterion, "clarabel-direct", True, req.args),
+                   means[b:b + 1], covs[b:b + 1], q[b:b + 1], E[b:b + 1], one, Names(), True)
+        except FusionSolverError:
+            continue
+        if one.stats[0, 2] < a.stats[b, 2]:
+            for name in ("W", "mean", "cov", "stats"):
+                getattr(a, name)[b] = getattr(one, name)[0]
+            a.iters[b] += one.iters[0]
+
+
+_OPTIMAL_OR_NOT = np.array([Status.OPTIMAL, Status.OPTIMAL_INACCURATE], dtype=object)
+
+
+def _ci_output(a, solve_time, polish_iters):
+    status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
+    return (a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1], status, a.iters, solve_time,
+            polish_iters, "ci_weights")
+
+
+def _check_memory(req, n, N):
+    if working_bytes(n, N) > limits.working_memory:
+        raise FusionSolverError(req.backend, "memory_limit", _memory(
+            "the native solvers' work arrays", working_bytes(n, N), n, N, "working_memory"))
+    if req.backend in _CONIC and conic_bytes(n, N) > limits.conic_memory:
+        raise FusionSolverError(req.backend, "memory_limit", _memory(
+            "Clarabel's KKT system", conic_bytes(n, N), n, N, "conic_memory"))
+
+
+def _overflow() -> FusionInputError:
+    return FusionInputError(
+        "the fused estimate overflows float64 (covariances or means too large, or MBCI "
+        "scales too small for the result to be represented)")
+
+
+def _rules(req, means, covs, k, batch):
+    """A rule of rules.py, problem by problem, on the prescaled covariances."""
+    B, N, n = means.shape
+    scale = np.ldexp(1.0, -k)[:, None, None, None]
+    scaled = 0.5 * (covs + np.swapaxes(covs, -1, -2)) * scale
+    cross = _cross(req.args.get("cross"), B, N, n, batch) if "cross" in _ARGS[req.method] \
+        else None
+    outs = []
+    for b in range(B):
+        args = {} if cross is None else {"cross": cross[b] * scale[b, 0]}
+        outs.append(rules.RULES[req.method](means[b], scaled[b], req.criterion, **args))
+    cov = np.stack([o.cov for o in outs]) / scale[:, :, :, 0]
+    obj = np.trace(cov, axis1=-2, axis2=-1) if req.trace else _logdet(cov)
+    status = np.array([Status(o.status) for o in outs], dtype=object)
+    return (np.stack([o.weights for o in outs]), np.stack([o.mean for o in outs]), cov, obj,
+            np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0, outs[0].weights_are)
+
+
+def _cross(cross, B, N, n, batch):
+    """known-cross's cross as (B, N, N, n, n), its leading shape checked by name."""
+    if cross is None:
+        raise FusionInputError("method 'known-cross' needs cross, the joint covariance "
+                               f"blocks ({'B, ' if batch else ''}N, N, n, n)")
+    cross = real_array(cross, "cross")
+    want = (B, N, N, n, n) if batch else (N, N, n, n)
+    if cross.shape != want:
+        raise FusionInputError(f"cross must have shape {want}, got {cross.shape}")
+    return cross if batch else cross[None]
+
+
+def _logdet(cov):
+    sign, logdet = np.linalg.slogdet(cov)
+    return np.where(sign > 0, logdet, np.nan)
+
+
+def _check_finite(req, out):
+    """No NaN, inf or non-positive-definite covariance leaves the library."""
+    w, mean, cov, obj = out[:4]
+    if not (np.isfinite(mean).all() and np.isfinite(cov).all() and np.isfinite(obj).all()
+            and np.isfinite(w).all()):
+        raise FusionInputError(
+            "the fused estimate overflows float64 (covariances or means too large, or MBCI "
+            "scales too small for the result to be represented)")
+    diag = np.diagonal(cov, axis1=-2, axis2=-1)
+    if not (diag > 0).all():
+        raise FusionSolverError(req.backend or req.method, "numerical_error",
+                                "the fused covariance is not positive definite")
+
+
+def _result(req, out, batch):
+    w, mean, cov, obj, gap, status, iters, solve_time, polish_iters, weights_are = out
+    backend = req.backend
+    if batch:
+        return BatchFusionResult(w, mean, cov, obj, gap, status, iters, backend, solve_time,
+                                 req.method, req.criterion, weights_are)
+    return FusionResult(w[0], mean[0], cov[0], float(obj[0]), float(gap[0]), status[0],
+                        backend, solve_time, int(iters[0]), req.method, req.criterion,
+                        polish_iters, weights_are)
+
+
+def _memory(what, need, n, N, limit_name) -> str:
+    limit = getattr(limits, limit_name)
+    return (f"n = {n}, N = {N}: {what} would need about {need / 2**30:.3g} GiB, over the "
+            f"limit of {limit / 2**30:.3g} GiB (fusion_opt.limits.{limit_name})")
+
+
+def _input_error(code, where, means, covs, names, batch) -> FusionInputError:
+    """The FusionInputError of a failed check of `prepare`, naming the argument."""
+    b, i, j = (int(x) for x in where)
+    problem = b if batch else None
+    if code == MEANS_NONFINITE:
+        return FusionInputError(f"{names.of('means', i, problem)} has a non-finite value "
+                                f"{means[b, i, j]}")
+    if code == COVS_NONFINITE:
+        n = covs.shape[-1]
+        value = covs[b, i, j // n, j % n]
+        return FusionInputError(f"{names.of('covs', i, problem)} has a non-finite value "
+                                f"{value} at [{j // n}, {j % n}]")
+    P = covs[b, i]
+    if code == ASYMMETRIC:
+        asym = np.abs(P - P.T).max()
+        return FusionInputError(
+            f"{names.of('covs', i, problem)} is not symmetric: max |P - P^T| = {asym:.3g} "
+            f"exceeds {SYMMETRY_RTOL:g} x max |P| = {np.abs(P).max():.3g}")
+    if code == NOT_PD:
+        with np.errstate(all="ignore"):
+            eig = np.linalg.eigvalsh(0.5 * (P + P.T)).min()
+        return FusionInputError(f"{names.of('covs', i, problem)} is not positive definite "
+                                f"(smallest eigenvalue {eig:.3g})")
+    assert code == SPREAD
+    where_b = "" if problem is None else f" of problem {b}"
+    return FusionInputError(f"{names.covs}{where_b} span a ratio of scales beyond float64 "
+                            f"(more than 2^1900 between nodes)")

@@ -1,0 +1,280 @@
+"""Compiled dense linear algebra for the matrices of a fusion problem.
+
+numba-compiled and cached on disk (compiled once per machine). The routines write into
+arrays their caller owns, so a solver allocates its work arrays once per problem, not once
+per step: at n = 4 an allocation or a LAPACK call from compiled code costs more than the
+arithmetic it serves (a 12 x 4 QR took 1.3 µs through LAPACK). Up to `SMALL` rows and
+columns the products are loops written here; above it they call BLAS, and `eigh` LAPACK.
+
+    cholesky(A, L)            A = L L^T, L lower; False if A is not positive definite
+    lower_inverse(L, X)       X = L^-1, L lower triangular; upper_inverse(R, X) likewise
+    householder(At, rows, Vt, R)  QR of A given as At = A^T (columns contiguous): reflectors
+                              in Vt, R upper (R_kk of either sign)
+    apply_qt(Vt, rows, b)     b[:rows] <- Q^T b[:rows]
+    thin_qt(Vt, rows, Qt)     Qt = the first n columns of Q, transposed
+    eigh(S, lam, V)           S = V diag(lam) V^T, lam ascending (Jacobi when small)
+    matmul(A, B, C), gram(B, G)   C = A B, G = B^T B
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+SMALL = 16
+_JACOBI_SWEEPS = 60
+_EPS = np.finfo(np.float64).eps
+
+jit = njit(cache=True, error_model="numpy")
+
+
+@jit
+def cholesky(A, L) -> bool:
+    """Lower Cholesky factor of the symmetric A (n, n) into L; False (L undefined) when a
+    pivot is not positive or not finite, i.e. A is not positive definite to rounding."""
+    n = A.shape[0]
+    for j in range(n):
+        d = A[j, j]
+        for p in range(j):
+            d -= L[j, p] * L[j, p]
+        if not d > 0.0 or not np.isfinite(d):
+            return False
+        d = np.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for p in range(j):
+                t -= L[i, p] * L[j, p]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@jit
+def lower_inverse(L, X):
+    """X = L^-1 for a lower-triangular L with a nonzero diagonal (X may not be L)."""
+    n = L.shape[0]
+    for j in range(n):
+        for i in range(j):
+            X[i, j] = 0.0
+        X[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            t = 0.0
+            for p in range(j, i):
+                t -= L[i, p] * X[p, j]
+            X[i, j] = t / L[i, i]
+
+
+@jit
+def upper_inverse(R, X):
+    """X = R^-1 for an upper-triangular R with a nonzero diagonal (X may not be R)."""
+    n = R.shape[0]
+    for j in range(n):
+        for i in range(j + 1, n):
+            X[i, j] = 0.0
+        X[j, j] = 1.0 / R[j, j]
+        for i in range(j - 1, -1, -1):
+            t = 0.0
+            for p in range(i + 1, j + 1):
+                t -= R[i, p] * X[p, j]
+            X[i, j] = t / R[i, i]
+
+
+@jit
+def householder(At, rows, Vt, R):
+    """QR of A = At[:, :rows]^T (rows >= n), given transposed so that every column of A is
+    a contiguous row: At is overwritten, the unit reflectors v_k (H_k = I - 2 v v^T) go to
+    Vt[k, k:rows], R (n, n) is upper triangular (R_kk of either sign). Q = H_0 ... H_{n-1}.
+    (Rows are indexed, not sliced: a view costs more than this arithmetic at n = 4.)"""
+    n = At.shape[0]
+    for k in range(n):
+        norm = 0.0
+        for i in range(k, rows):
+            norm += At[k, i] * At[k, i]
+        norm = np.sqrt(norm)
+        alpha = -norm if At[k, k] >= 0.0 else norm
+        vnorm2 = 0.0
+        for i in range(k, rows):
+            Vt[k, i] = At[k, i]
+        Vt[k, k] -= alpha
+        for i in range(k, rows):
+            vnorm2 += Vt[k, i] * Vt[k, i]
+        if vnorm2 > 0.0:
+            scale = 1.0 / np.sqrt(vnorm2)
+            for i in range(k, rows):
+                Vt[k, i] *= scale
+            for j in range(k + 1, n):
+                _reflect(At, j, Vt, k, rows)
+        R[k, k] = alpha
+        for j in range(k + 1, n):
+            R[k, j] = At[j, k]
+        for j in range(k):
+            R[k, j] = 0.0
+
+
+@jit
+def _reflect(X, j, Vt, k, rows):
+    """X[j, k:rows] <- (I - 2 v v^T) X[j, k:rows] with v = Vt[k]."""
+    t = 0.0
+    for i in range(k, rows):
+        t += Vt[k, i] * X[j, i]
+    t *= 2.0
+    for i in range(k, rows):
+        X[j, i] -= t * Vt[k, i]
+
+
+@jit
+def apply_qt(Vt, rows, b):
+    """b[:rows] <- Q^T b[:rows] with the reflectors of `householder`."""
+    for k in range(Vt.shape[0]):
+        t = 0.0
+        for i in range(k, rows):
+            t += Vt[k, i] * b[i]
+        t *= 2.0
+        for i in range(k, rows):
+            b[i] -= t * Vt[k, i]
+
+
+@jit
+def thin_qt(Vt, rows, Qt):
+    """Qt[:, :rows] (n, rows) = the transpose of the first n columns of Q."""
+    n = Vt.shape[0]
+    for j in range(n):
+        for i in range(rows):
+            Qt[j, i] = 1.0 if i == j else 0.0
+        for k in range(min(j, n - 1), -1, -1):  # H_k e_j = e_j for k > j
+            _reflect(Qt, j, Vt, k, rows)
+
+
+@jit
+def copy(dst, src):
+    """dst[...] = src for arrays of one shape (1-D or 2-D): a loop, which in compiled code
+    costs a fraction of an array assignment's broadcasting machinery (6 against 200 ns)."""
+    if src.ndim == 1:
+        for i in range(src.shape[0]):
+            dst[i] = src[i]
+    else:
+        for i in range(src.shape[0]):
+            for j in range(src.shape[1]):
+                dst[i, j] = src[i, j]
+
+
+@jit
+def fill(dst, value):
+    """dst[:] = value for a 1-D array, as a loop."""
+    for i in range(dst.shape[0]):
+        dst[i] = value
+
+
+@jit
+def matmul(A, B, C):
+    """C = A @ B (C may not alias A or B)."""
+    if A.shape[0] > SMALL or A.shape[1] > SMALL or B.shape[1] > SMALL:
+        np.dot(np.ascontiguousarray(A), np.ascontiguousarray(B), C)
+        return
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
+            t = 0.0
+            for k in range(A.shape[1]):
+                t += A[i, k] * B[k, j]
+            C[i, j] = t
+
+
+@jit
+def matmul_t(A, B, C):
+    """C = A @ B^T (C may not alias A or B)."""
+    if A.shape[0] > SMALL or A.shape[1] > SMALL or B.shape[0] > SMALL:
+        np.dot(np.ascontiguousarray(A), np.ascontiguousarray(B.T), C)
+        return
+    for i in range(A.shape[0]):
+        for j in range(B.shape[0]):
+            t = 0.0
+            for k in range(A.shape[1]):
+                t += A[i, k] * B[j, k]
+            C[i, j] = t
+
+
+@jit
+def gram(B, G):
+    """G = B^T B (n, n), exactly symmetric, for B (M, n)."""
+    n = B.shape[1]
+    if B.shape[0] > SMALL or n > SMALL:
+        np.dot(np.ascontiguousarray(B.T), np.ascontiguousarray(B), G)
+        for i in range(n):
+            for j in range(i + 1, n):
+                G[i, j] = G[j, i] = 0.5 * (G[i, j] + G[j, i])
+        return
+    for i in range(n):
+        for j in range(i, n):
+            t = 0.0
+            for k in range(B.shape[0]):
+                t += B[k, i] * B[k, j]
+            G[i, j] = t
+            G[j, i] = t
+
+
+@jit
+def eigh(S, lam, V):
+    """lam (n,) ascending and V (n, n) orthonormal with S = V diag(lam) V^T for the
+    symmetric S, which is overwritten (cyclic Jacobi when small, LAPACK otherwise)."""
+    n = S.shape[0]
+    if n > SMALL:
+        w, U = np.linalg.eigh(np.ascontiguousarray(S))
+        copy(lam, w)
+        copy(V, U)
+        return
+    for i in range(n):
+        for j in range(n):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _ in range(_JACOBI_SWEEPS):
+        rotated = False
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                # below eps times its diagonal neighbours an entry is rounding: leave it,
+                # which keeps small eigenvalues to high relative accuracy
+                if abs(S[p, q]) > _EPS * np.sqrt(abs(S[p, p] * S[q, q])):
+                    _rotate(S, V, p, q)
+                    rotated = True
+        if not rotated:
+            break
+    for i in range(n):
+        lam[i] = S[i, i]
+    _sort_pairs(lam, V)
+
+
+@jit
+def _rotate(A, V, p, q):
+    """One Jacobi rotation zeroing A[p, q] (Golub & Van Loan, Alg. 8.5.2)."""
+    theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
+    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    s = t * c
+    n = A.shape[0]
+    for k in range(n):
+        akp, akq = A[k, p], A[k, q]
+        A[k, p] = c * akp - s * akq
+        A[k, q] = s * akp + c * akq
+    for k in range(n):
+        apk, aqk = A[p, k], A[q, k]
+        A[p, k] = c * apk - s * aqk
+        A[q, k] = s * apk + c * aqk
+    A[p, q] = 0.0
+    A[q, p] = 0.0
+    for k in range(n):
+        vkp, vkq = V[k, p], V[k, q]
+        V[k, p] = c * vkp - s * vkq
+        V[k, q] = s * vkp + c * vkq
+
+
+@jit
+def _sort_pairs(lam, V):
+    """Sort lam ascending, permuting the columns of V alike (insertion sort: n is small)."""
+    n = lam.size
+    for i in range(1, n):
+        j = i
+        while j > 0 and lam[j - 1] > lam[j]:
+            lam[j - 1], lam[j] = lam[j], lam[j - 1]
+            for r in range(n):
+                V[r, j - 1], V[r, j] = V[r, j], V[r, j - 1]
+            j -= 1

@@ -1,0 +1,119 @@
+"""Checks, exact prescaling and square-root factors of a batch of fusion problems, compiled.
+
+`prepare(means (B, N, n), covs (B, N, n, n), q (B, N), E (B, N))` checks every value (means
+and covariances finite, covariances symmetric within SYMMETRY_RTOL of their largest entry
+and positive definite), and returns the factors of `factored.py` of the covariances that
+are fused,
+
+    Phat_i = P_i / s_i,   s_i = q_i 2^E_i  (q_i in [1, 2), E_i integer; s = 1 for CI and
+                                            the detection scales of MBCI, kept in logs),
+
+each multiplied by 2^-k_b, one exact power of two per problem that puts the geometric
+middle of its nodes' scales (largest diagonal entries) at 1. So covariances from 1e-310
+(denormal) to 1e300, and nodes of one problem 1e16 apart, reach the solvers as numbers of
+order one without a rounding error; results are scaled back by 2^k_b. A problem whose
+nodes span more than 2^1900 cannot be brought into range and is refused.
+
+The first failing check is reported as a code and its position (problem, node); the caller
+turns it into a FusionInputError naming the argument.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .linalg import cholesky, jit, lower_inverse
+
+SYMMETRY_RTOL = 1e-8
+MAX_SPREAD_BITS = 1900
+
+OK, MEANS_NONFINITE, COVS_NONFINITE, ASYMMETRIC, NOT_PD, SPREAD = range(6)
+
+
+@jit
+def prepare(means, covs, q, E, F, k, vertex, pnorm, where) -> int:
+    """Check and factor B problems into the caller's arrays; returns a code (OK = 0).
+
+    F (B, N, n, n) the factors; k (B,) the exponents; vertex[b, i] = (tr, log det) of the
+    scaled Phat_i (the objective at the vertex e_i, in scaled units); pnorm[b, i] its
+    Frobenius norm (the scale of its rounding, for the error bounds of `assemble.py`);
+    where = (problem, node, index) of the first failure.
+    """
+    B, N, n = means.shape
+    S, C = np.empty((n, n)), np.empty((n, n))
+    for b in range(B):
+        code = _check_values(means[b], covs[b], where)
+        if code != OK:
+            where[0] = b
+            return code
+        lo, hi = np.inf, -np.inf
+        for i in range(N):
+            top = 0.0
+            for j in range(n):
+                top = max(top, covs[b, i, j, j])
+            if not top > 0.0:
+                where[0], where[1] = b, i
+                return NOT_PD
+            bits = np.log2(top) - np.log2(q[b, i]) - E[b, i]
+            lo, hi = min(lo, bits), max(hi, bits)
+        if hi - lo > MAX_SPREAD_BITS:
+            where[0] = b
+            return SPREAD
+        k[b] = int(np.round(0.5 * (lo + hi)))
+        for i in range(N):
+            pnorm[b, i] = _factor(covs[b, i], q[b, i], E[b, i] + k[b], S, C, F[b, i],
+                                  vertex[b, i])
+            if not pnorm[b, i] > 0.0:
+                where[0], where[1] = b, i
+                return NOT_PD
+    return OK
+
+
+@jit
+def _check_values(means, covs, where) -> int:
+    """Finite means and covariances, symmetric covariances; where[1:] = (node, index)."""
+    N, n = means.shape
+    for i in range(N):
+        for j in range(n):
+            if not np.isfinite(means[i, j]):
+                where[1], where[2] = i, j
+                return MEANS_NONFINITE
+    for i in range(N):
+        top = 0.0
+        for j in range(n):
+            for l in range(n):
+                x = covs[i, j, l]
+                if not np.isfinite(x):
+                    where[1], where[2] = i, j * n + l
+                    return COVS_NONFINITE
+                top = max(top, abs(x))
+        for j in range(n):
+            for l in range(j + 1, n):
+                if abs(covs[i, j, l] - covs[i, l, j]) > SYMMETRY_RTOL * top:
+                    where[1] = i
+                    return ASYMMETRIC
+    return OK
+
+
+@jit
+def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
+    """F_out = C^-1 for C C^T = S = sym(P) / q * 2^-shift; vertex_out = (tr, log det) of S;
+    returns |S|_F, or 0 when S is not positive definite."""
+    n = P.shape[0]
+    norm2 = 0.0
+    for j in range(n):
+        for l in range(n):
+            S[j, l] = np.ldexp(0.5 * (P[j, l] + P[l, j]) / q, -shift)
+            norm2 += S[j, l] * S[j, l]
+    if not cholesky(S, C):
+        return 0.0
+    lower_inverse(C, F_out)
+    trace, logdet = 0.0, 0.0
+    for j in range(n):
+        trace += S[j, j]
+        logdet += 2.0 * np.log(C[j, j])
+        for l in range(j + 1):
+            if not np.isfinite(F_out[j, l]):
+                return 0.0
+    vertex_out[0], vertex_out[1] = trace, logdet
+    return np.sqrt(norm2)
