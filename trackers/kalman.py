@@ -65,7 +65,7 @@ def innovation_loglik(v, S):
 
 def _gain_t(S, PHt):
     """K^T = S^-1 (P H^T)^T (..., d, n), since S is symmetric; one batched solve."""
-    return np.linalg.solve(S, np.swapaxes(PHt, -1, -2))
+    return np.linalg.solve(S, PHt.swapaxes(-1, -2))
 
 
 def update_innovation(m, P, v, S, PHt):
@@ -73,7 +73,7 @@ def update_innovation(m, P, v, S, PHt):
     Kt = _gain_t(S, PHt)
     m_new = m + (v[..., None, :] @ Kt)[..., 0, :]  # m + K v
     P_new = P - PHt @ Kt  # = P - K S K^T
-    return m_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
+    return m_new, 0.5 * (P_new + P_new.swapaxes(-1, -2))
 
 
 def update_with_loglik(m, P, y, H, R):

@@ -207,7 +207,7 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
     3). Writes into the state's arrays, which the caller owns."""
     N, C = s.alive.shape
     # The Kalman filters in play: the K alive targets, then the birth prior (index K).
-    rows, cols = np.nonzero(s.alive)
+    rows, cols = s.alive.nonzero()
     K = rows.size
     m = np.concatenate([s.M[rows, cols], p.m0[None]])
     P = np.concatenate([s.P[rows, cols], p.P0[None]])
@@ -262,9 +262,12 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
 def extract_tracks(s: RBMCDAState, w: np.ndarray):
     """The MAP particle's targets (ids (m,)) with their mixture moments over the particles
     sharing them: means (m, n), covs (m, n, n). w (N,) normalised weights."""
-    best = int(np.argmax(w))
+    best = int(w.argmax())
     ids = s.ids[best][s.alive[best]]
-    rows, cols = np.nonzero(s.alive)
+    if ids.size == 0:
+        n = s.M.shape[-1]
+        return ids, np.zeros((0, n)), np.zeros((0, n, n))
+    rows, cols = s.alive.nonzero()
     # share[u, k]: weight of alive target k in track u's mixture (one per particle at most)
     share = (s.ids[rows, cols] == ids[:, None]) * w[rows]
     share /= share.sum(axis=1, keepdims=True)
@@ -283,7 +286,7 @@ def filter_step(s: RBMCDAState, scan: np.ndarray, p: RBMCDAParams, rng):
         alive &= ~dead
         ids[dead] = -1
     # predict the survivors; a dead slot keeps its last (finite, never read) moments
-    rows, cols = np.nonzero(alive)
+    rows, cols = alive.nonzero()
     M[rows, cols], P[rows, cols] = kalman.predict(M[rows, cols], P[rows, cols],
                                                   p.model.A, p.model.Q)
     s = s._replace(M=M, P=P, alive=alive, ids=ids, tau=s.tau.copy(), k=s.k + 1)

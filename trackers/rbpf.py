@@ -99,8 +99,8 @@ def mixture_moments(w: np.ndarray, m: np.ndarray, P: np.ndarray):
     mean = w @ m
     dm = m - mean[..., None, :]  # (..., K, n)
     cov = (w @ P.reshape(K, n * n)).reshape(*w.shape[:-1], n, n)
-    cov = cov + np.swapaxes(dm * w[..., None], -1, -2) @ dm
-    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    cov = cov + (dm * w[..., None]).swapaxes(-1, -2) @ dm
+    return mean, 0.5 * (cov + cov.swapaxes(-1, -2))
 
 
 def associate_step(m, P, logw, y, params: RBPFParams, rng):
