@@ -9,7 +9,7 @@ silently converted (a complex value is never truncated to its real part).
 from __future__ import annotations
 
 import numbers
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 
 import numpy as np
 
@@ -97,6 +97,26 @@ def boolean(name: str, value) -> bool:
     if not isinstance(value, bool | np.bool_):
         raise FusionInputError(f"{name} must be True or False, got {value!r}")
     return bool(value)
+
+
+def node_name(value):
+    """A tracker's name, stamped on its Estimates as the node: any hashable, or None."""
+    if value is not None and not isinstance(value, Hashable):
+        raise FusionInputError(f"name must be hashable (e.g. a string), got "
+                               f"{type(value).__name__}")
+    return value
+
+
+def step_time(value) -> float | None:
+    """The time stamped on a step's Estimates: None or a finite real number."""
+    return None if value is None else finite("time", value)
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (a filter's state is shown, never lent out to write)."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
 
 
 def generator(name: str, value) -> np.random.Generator:

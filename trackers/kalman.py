@@ -161,13 +161,6 @@ def check_prior(model: LinearGaussian, m0, P0):
     return m0, P0
 
 
-def read_only(a: np.ndarray) -> np.ndarray:
-    """A read-only view of ``a`` (the filters' state is shown, never lent out to write)."""
-    v = a.view()
-    v.flags.writeable = False
-    return v
-
-
 class KalmanFilter:
     """The paper's baseline Kalman filter (no data association), one step at a time.
 
@@ -180,20 +173,20 @@ class KalmanFilter:
     """
 
     def __init__(self, model: LinearGaussian, m0, P0, *, name=None):
-        self.model = model
-        self.name = name
         self._m, self._P = check_prior(model, m0, P0)
+        self.model = model
+        self.name = _checks.node_name(name)
         self._steps = 0
 
     @property
     def mean(self) -> np.ndarray:
         """(n,) filtered mean after the last step (the prior m0 before the first)."""
-        return read_only(self._m)
+        return _checks.read_only(self._m)
 
     @property
     def cov(self) -> np.ndarray:
         """(n, n) filtered covariance after the last step (the prior P0 before the first)."""
-        return read_only(self._P)
+        return _checks.read_only(self._P)
 
     @property
     def steps(self) -> int:
@@ -207,6 +200,7 @@ class KalmanFilter:
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, update with every measurement of ``scan`` (k, d), report (id 0)."""
+        time = _checks.step_time(time)
         self._advance(_checks.scan("scan", scan, self.model.d))
         return Estimates(self._m[None], self._P[None], None, time, self.name)
 

@@ -31,7 +31,8 @@ Per step (time t_k = (k + 1) dt; the prior state is at time 0):
    and tau_ij = t_k; a birth adds a target initialised by updating the prior (m0, P0) with
    y. A measurement with predictive likelihood 0 for every particle (clutter_prior = 0 and
    a squared Mahalanobis distance above ~1e308 from every target and from the birth prior)
-   raises FusionInputError; the filter is then unchanged.
+   raises FusionInputError; the particles are then unchanged (the generator has
+   moved on).
 4. Resample systematically when ESS < resample_threshold * N
    (``trackers.resampling.end_of_step``).
 
@@ -61,7 +62,6 @@ from scipy.special import gammaincc
 
 from fusion_opt import Estimates, FusionInputError
 from trackers import _checks, kalman
-from trackers.kalman import read_only
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
 from trackers.resampling import end_of_step
@@ -141,7 +141,8 @@ def event_log_priors(birth_prob: float, clutter_prior: float, clutter_density: f
 class RBMCDAState(NamedTuple):
     """The particles, their targets padded into C slots.
 
-    M (N, C, n), P (N, C, n, n): target means and covariances (a dead slot holds m0, P0);
+    M (N, C, n), P (N, C, n, n): target means and covariances (a dead slot holds finite
+    values that are never read);
     alive (N, C) bool; ids (N, C) int64 target ids (-1 in a dead slot); tau (N, C) time of
     each target's last associated measurement; logw (N,) normalised log-weights;
     next_id: the id the next born target gets; k: the number of steps taken.
@@ -202,61 +203,76 @@ def deaths(alive, tau, t_prev: float, t: float, shape: float, scale: float, u) -
     return alive & ~(u * survival(t_prev - tau, shape, scale) < survival(t - tau, shape, scale))
 
 
+def _event_log_joint(alive, rows, cols, ll, p: RBMCDAParams) -> np.ndarray:
+    """log(prior x likelihood) (N, C + 2) of each particle's events for one measurement:
+    clutter, birth, then the target in slot c (-inf where slot c is dead). ll (K + 1,) holds
+    the log-likelihoods of the K alive targets (at rows, cols) and of the birth prior."""
+    N, C = alive.shape
+    K = rows.size
+    n_alive = np.bincount(rows, minlength=N)
+    log_joint = np.full((N, C + 2), -np.inf)
+    log_joint[:, :2] = p.log_clutter_birth[(n_alive == 0).view(np.int8)]
+    log_joint[:, 1] += ll[K]
+    log_joint[rows, cols + 2] = ll[:K] + (p.log_target - np.log(np.maximum(n_alive, 1)))[rows]
+    return log_joint
+
+
+def _draw(log_joint: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
+    """One event per row of log_joint (N, E), drawn with probability proportional to
+    exp(log_joint) by inverse CDF, and the rows' log-normalisers log sum exp (N,).
+    A row with no possible event (all -inf) gets -inf (its particle weight 0)."""
+    peak = log_joint.max(axis=1)
+    peak[peak == -np.inf] = 0.0
+    cdf = np.cumsum(np.exp(log_joint - peak[:, None]), axis=1)
+    with np.errstate(divide="ignore"):
+        log_norm = peak + np.log(cdf[:, -1])
+    u = rng.random(log_joint.shape[0]) * cdf[:, -1]
+    return np.minimum((cdf < u[:, None]).sum(axis=1), log_joint.shape[1] - 1), log_norm
+
+
 def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) -> RBMCDAState:
     """Process one measurement y (d,) at time t for all particles (module docstring, step
     3). Writes into the state's arrays, which the caller owns."""
-    N, C = s.alive.shape
     # The Kalman filters in play: the K alive targets, then the birth prior (index K).
     rows, cols = s.alive.nonzero()
     K = rows.size
     m = np.concatenate([s.M[rows, cols], p.m0[None]])
     P = np.concatenate([s.P[rows, cols], p.P0[None]])
     v, S, PHt = kalman.innovation(m, P, y, p.model.H, p.model.R)
-    ll = kalman.innovation_loglik(v, S)  # (K + 1,)
-
-    # log prior x likelihood of each event (N, C + 2): clutter, birth, target in slot c
-    n_alive = np.bincount(rows, minlength=N)
-    log_joint = np.full((N, C + 2), -np.inf)
-    log_joint[:, :2] = p.log_clutter_birth[(n_alive == 0).view(np.int8)]
-    log_joint[:, 1] += ll[K]
-    log_joint[rows, cols + 2] = ll[:K] + (p.log_target - np.log(np.maximum(n_alive, 1)))[rows]
-
-    # draw the event from its optimal importance distribution (inverse CDF); the weight
-    # takes the predictive likelihood log_pred = log sum_events exp(log_joint)
-    peak = log_joint.max(axis=1)
-    if peak.max() == -np.inf:
+    log_joint = _event_log_joint(s.alive, rows, cols, kalman.innovation_loglik(v, S), p)
+    choice, log_pred = _draw(log_joint, rng)
+    if log_pred.max() == -np.inf:
         raise FusionInputError(
             f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
             "and the birth prior, and clutter_prior = 0 rules out clutter: no hypothesis "
             "explains it")
-    peak[peak == -np.inf] = 0.0  # a particle with no possible event gets weight 0
-    cdf = np.cumsum(np.exp(log_joint - peak[:, None]), axis=1)
-    with np.errstate(divide="ignore"):
-        log_pred = peak + np.log(cdf[:, -1])
-    u = rng.random(N) * cdf[:, -1]
-    choice = np.minimum((cdf < u[:, None]).sum(axis=1), C + 1)
+    s = s._replace(logw=s.logw + log_pred)
 
     # one Kalman update for every particle that chose a target or a birth
     r = np.flatnonzero(choice)
-    s = s._replace(logw=s.logw + log_pred)
     if r.size == 0:
         return s
-    index = np.full((N, C + 2), K)  # event -> filter; clutter is never looked up
+    index = np.full(log_joint.shape, K)  # event -> filter; clutter is never looked up
     index[rows, cols + 2] = np.arange(K)
     j = index[r, choice[r]]
     m_new, P_new = kalman.update_innovation(m[j], P[j], v[j], S[j], PHt[j])
     c = choice[r] - 2
     born = c < 0
     if born.any():
-        b = r[born]
-        if s.alive[b].all(axis=1).any():
-            s = _grow(s, p.m0, p.P0)
-        c[born] = np.argmin(s.alive[b], axis=1)  # first free slot
-        s.alive[b, c[born]] = True
-        s.ids[b, c[born]] = s.next_id + np.arange(b.size)
-        s = s._replace(next_id=s.next_id + b.size)
+        s, c[born] = _births(s, r[born], p)
     s.M[r, c], s.P[r, c], s.tau[r, c] = m_new, P_new, t
     return s
+
+
+def _births(s: RBMCDAState, b: np.ndarray, p: RBMCDAParams):
+    """Give each particle in b a new target with a fresh id in its first free slot (the
+    slots grow if one has none). Returns the state and those slots (b.size,)."""
+    if s.alive[b].all(axis=1).any():
+        s = _grow(s, p.m0, p.P0)
+    c = s.alive[b].argmin(axis=1)
+    s.alive[b, c] = True
+    s.ids[b, c] = s.next_id + np.arange(b.size)
+    return s._replace(next_id=s.next_id + b.size), c
 
 
 def extract_tracks(s: RBMCDAState, w: np.ndarray):
@@ -348,11 +364,12 @@ class RBMCDA:
         table, log_target = event_log_priors(
             pb, cp, _checks.positive("clutter_density", clutter_density))
         self.params = RBMCDAParams(
-            model, read_only(m0), read_only(P0), _checks.positive("dt", dt), read_only(table),
-            log_target, _checks.positive("lifetime_shape", lifetime_shape),
+            model, _checks.read_only(m0), _checks.read_only(P0), _checks.positive("dt", dt),
+            _checks.read_only(table), log_target,
+            _checks.positive("lifetime_shape", lifetime_shape),
             _checks.positive("lifetime_scale", lifetime_scale),
             _checks.probability("resample_threshold", resample_threshold) * N)
-        self.name = name
+        self.name = _checks.node_name(name)
         self._state = initial_state(m0, P0, N)
         self._last = RBMCDAReport(np.zeros(0, dtype=np.int64), np.zeros((0, model.n)),
                                   np.zeros((0, model.n, model.n)), float(N), 0.0, False)
@@ -360,13 +377,13 @@ class RBMCDA:
     @property
     def particles(self) -> RBMCDAState:
         """The particles (RBMCDAState; its arrays are read-only views)."""
-        return RBMCDAState(*(read_only(v) if isinstance(v, np.ndarray) else v
+        return RBMCDAState(*(_checks.read_only(v) if isinstance(v, np.ndarray) else v
                              for v in self._state))
 
     @property
     def log_weights(self) -> np.ndarray:
         """(N,) normalised log-weights."""
-        return read_only(self._state.logw)
+        return _checks.read_only(self._state.logw)
 
     @property
     def steps(self) -> int:
@@ -396,6 +413,7 @@ class RBMCDA:
     def step(self, scan, time=None) -> Estimates:
         """Predict, draw deaths, associate every measurement of ``scan`` (k, d), report the
         MAP particle's targets with their ids."""
+        time = _checks.step_time(time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         if time is None:
             time = self._state.k * self.params.dt

@@ -20,7 +20,8 @@ covariance, taken before resampling.
 
 A measurement whose predictive likelihood is 0 in floating point for every particle (only
 possible with clutter_prior = 0, for a squared Mahalanobis distance above ~1e308) cannot be
-explained by any hypothesis: the step raises FusionInputError and the filter is unchanged.
+explained by any hypothesis: the step raises FusionInputError and the particles are
+unchanged (the generator has moved on).
 
 Time convention: m0, P0 describe the state at time 0 and the filter's first action is a
 prediction to step 0's time (one dt later). With the simulators of ``trackers.scenarios``
@@ -40,7 +41,6 @@ import numpy as np
 
 from fusion_opt import Estimates, FusionInputError
 from trackers import _checks, kalman
-from trackers.kalman import read_only
 from trackers.models import LinearGaussian
 from trackers.resampling import end_of_step, logsumexp
 
@@ -173,7 +173,7 @@ class RBPF:
         thr = _checks.probability("resample_threshold", resample_threshold) * N
         with np.errstate(divide="ignore"):  # log(0) = -inf removes that association exactly
             self.params = RBPFParams(model, np.log(cp) + np.log(cd), np.log1p(-cp), thr)
-        self.name = name
+        self.name = _checks.node_name(name)
         self._state = RBPFState(np.broadcast_to(m0, (N, model.n)).copy(),
                                 np.broadcast_to(P0, (N, model.n, model.n)).copy(),
                                 np.full(N, -np.log(N)))
@@ -182,17 +182,17 @@ class RBPF:
     @property
     def means(self) -> np.ndarray:
         """(N, n) particle means (after the last step's resampling, if any)."""
-        return read_only(self._state.m)
+        return _checks.read_only(self._state.m)
 
     @property
     def covs(self) -> np.ndarray:
         """(N, n, n) particle covariances."""
-        return read_only(self._state.P)
+        return _checks.read_only(self._state.P)
 
     @property
     def log_weights(self) -> np.ndarray:
         """(N,) normalised log-weights."""
-        return read_only(self._state.logw)
+        return _checks.read_only(self._state.logw)
 
     @property
     def steps(self) -> int:
@@ -218,6 +218,7 @@ class RBPF:
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, associate every measurement of ``scan`` (k, d), report (id 0)."""
+        time = _checks.step_time(time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         return Estimates(r.mean[None], r.cov[None], None, time, self.name)
 
