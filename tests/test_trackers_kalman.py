@@ -247,3 +247,5 @@ def test_cross_covariance_rejects_bad_input():
         kalman.cross_covariance_step(C, np.array([1, 0]), model)
     with pytest.raises(FusionInputError, match="C contains non-finite"):
         kalman.cross_covariance_step(C * np.nan, np.array([True, False]), model)
+    with pytest.raises(FusionInputError, match="model must be"):
+        kalman.cross_covariance_step(C, np.array([True, False]), "model")

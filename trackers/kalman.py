@@ -125,6 +125,9 @@ def cross_covariance_step(C, detected, model: LinearGaussian):
     covariance P-_i = A C_ii A^T + Q, and 0 for a node that missed. They are each filter's
     own gain, so m_i <- A m_i + K_i (y_i - H A m_i) updates the means that go with C.
     """
+    if not isinstance(model, LinearGaussian):
+        raise FusionInputError(
+            f"model must be a trackers.models.LinearGaussian, got {type(model).__name__}")
     C = _checks.finite_array("C", C, ndim=4)
     N, n = C.shape[0], model.n
     if C.shape != (N, N, n, n) or N == 0:
