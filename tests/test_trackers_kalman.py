@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
+from fusion_opt import Estimates, FusionInputError
 from trackers import kalman, models
 
 
@@ -103,3 +104,148 @@ def test_run_rejects_bad_input():
         kalman.run([np.array([[np.nan, 0.0]])], model, m0, P0)
     with pytest.raises(ValueError, match="model must be"):
         kalman.run([np.zeros((1, 2))], "model", m0, P0)
+
+
+def _table1_scans(n_steps=200, seed=1):
+    from trackers import scenarios
+
+    cfg = scenarios.Table1Config(n_steps=n_steps)
+    data = scenarios.simulate_table1(cfg, np.random.default_rng(seed))
+    m0, P0 = cfg.prior()
+    return cfg.filter_model(), m0, P0, data.nodes[1].scans
+
+
+def test_stepped_filter_equals_run_bit_for_bit():
+    model, m0, P0, scans = _table1_scans()
+    out = kalman.run(scans, model, m0, P0)
+    kf = kalman.KalmanFilter(model, m0, P0, name="node a")
+    for t, scan in enumerate(scans):
+        est = kf.step(scan, time=0.025 * (t + 1))
+        assert isinstance(est, Estimates) and len(est) == 1
+        assert est.ids.tolist() == [0] and est.node == "node a"
+        assert est.time == 0.025 * (t + 1)
+        np.testing.assert_array_equal(est.means[0], out.means[t])
+        np.testing.assert_array_equal(est.covs[0], out.covs[t])
+        np.testing.assert_array_equal(kf.mean, out.means[t])
+    assert kf.steps == len(scans)
+    assert kalman.KalmanFilter(model, m0, P0).step([]).time is None
+
+
+def test_filter_state_is_read_only_and_empty_scans_predict():
+    model, m0, P0, _ = _table1_scans(n_steps=2)
+    kf = kalman.KalmanFilter(model, m0, P0)
+    np.testing.assert_array_equal(kf.mean, m0)
+    for empty in ([], np.empty((0, 2))):
+        kf.step(empty)
+    ref = kalman.predict(*kalman.predict(m0, P0, model.A, model.Q), model.A, model.Q)
+    np.testing.assert_allclose(kf.mean, ref[0], rtol=1e-14)
+    np.testing.assert_allclose(kf.cov, ref[1], rtol=1e-13)
+    with pytest.raises(ValueError):
+        kf.mean[0] = 1.0
+    with pytest.raises(ValueError):
+        kf.cov[0, 0] = 1.0
+
+
+@pytest.mark.parametrize(
+    ("scan", "match"),
+    [(None, "scan must be an array-like"), ("1, 2", "scan must be an array of real numbers"),
+     ([[1 + 1j, 0.0]], "complex"), ([[True, 0.0]], "boolean"),
+     ([[np.nan, 0.0]], "non-finite"), ([0.1, 0.2], r"shape \(k, 2\)"),
+     ({"y": 1}, "scan must be an array of real numbers"), ([[1.0], [2.0]], r"shape \(k, 2\)")])
+def test_step_refuses_bad_scans(scan, match):
+    model, m0, P0, _ = _table1_scans(n_steps=2)
+    kf = kalman.KalmanFilter(model, m0, P0)
+    with pytest.raises(FusionInputError, match=match):
+        kf.step(scan)
+    assert kf.steps == 0
+    with pytest.raises(FusionInputError, match=match.replace("scan", r"scans\[0\]")):
+        kalman.run([scan], model, m0, P0)
+
+
+@pytest.mark.parametrize("scans", [None, "abc", 3.0, {"a": 1}, []])
+def test_run_refuses_non_sequences(scans):
+    model, m0, P0, _ = _table1_scans(n_steps=2)
+    with pytest.raises(FusionInputError, match="scans must"):
+        kalman.run(scans, model, m0, P0)
+
+
+def _network_errors(model, m0, P0, detected, runs, rng):
+    """Errors x - m_i (runs, N, n) after len(detected) steps of N Kalman filters of one
+    target: truth drawn from the model and the prior, node i measuring at step k iff
+    detected[k, i], with its own noise. Filters run batched over the runs."""
+    T, N = detected.shape
+    n = model.n
+    Lq, Lr = np.linalg.cholesky(model.Q), np.linalg.cholesky(model.R)
+    x = m0 + rng.standard_normal((runs, n)) @ np.linalg.cholesky(P0).T
+    m = np.broadcast_to(m0, (N, runs, n)).copy()
+    P = [np.broadcast_to(P0, (runs, n, n)).copy() for _ in range(N)]
+    for k in range(T):
+        x = x @ model.A.T + rng.standard_normal((runs, n)) @ Lq.T
+        for i in range(N):
+            m[i], P[i] = kalman.predict(m[i], P[i], model.A, model.Q)
+            if detected[k, i]:
+                y = x @ model.H.T + rng.standard_normal((runs, model.d)) @ Lr.T
+                m[i], P[i] = kalman.update(m[i], P[i], y, model.H, model.R)
+    return x[:, None, :] - np.swapaxes(m, 0, 1)
+
+
+def test_cross_covariance_matches_monte_carlo():
+    """The recursion against the sample covariance of the joint errors of three filters
+    with a common prior over 4000 seeded runs (a fixed detection pattern, so the exact
+    joint covariance is the same in every run)."""
+    model = models.turn_model(0.0, 0.5, 0.2, 0.5)
+    m0, P0 = np.array([0.0, 0.0, 1.0, 0.0]), np.diag([1.0, 1.0, 0.5, 0.5])
+    detected = np.array([[1, 0, 1], [1, 1, 0], [0, 1, 0], [1, 1, 1], [0, 0, 1], [1, 0, 0]],
+                        dtype=bool)
+    N, n = 3, 4
+    C = np.broadcast_to(P0, (N, N, n, n)).copy()
+    for det in detected:
+        C, _ = kalman.cross_covariance_step(C, det, model)
+    runs = 4000
+    err = _network_errors(model, m0, P0, detected, runs, np.random.default_rng(7))
+    sample = np.cov(err.reshape(runs, N * n).T)
+    exact = C.transpose(0, 2, 1, 3).reshape(N * n, N * n)
+    # entry-wise sampling sd is sqrt((S_ii S_jj + S_ij^2) / runs) <= sqrt(2 / runs) max S_ii
+    tol = 4.5 * np.sqrt(2.0 / runs) * np.sqrt(np.outer(np.diag(exact), np.diag(exact)))
+    assert np.all(np.abs(sample - exact) <= tol)
+    # the cross terms matter: with them set to 0 (independent nodes) the check would fail
+    cross = ~np.kron(np.eye(N, dtype=bool), np.ones((n, n), dtype=bool))
+    assert np.sum(np.abs(sample - np.where(cross, 0.0, exact)) > tol) > 20
+
+
+def test_cross_covariance_diagonal_and_gains_are_each_filters_own():
+    """C_ii is node i's Kalman covariance and K_i its gain: the mean update with K_i equals
+    the filter's, for every node and step (a node that missed has K_i = 0)."""
+    model = models.turn_model(0.3, 0.2, 0.1, 0.2)
+    m0, P0 = np.array([1.0, -1.0, 0.5, 0.0]), 0.7 * np.eye(4)
+    rng = np.random.default_rng(3)
+    N = 4
+    filters = [kalman.KalmanFilter(model, m0, P0) for _ in range(N)]
+    m = np.tile(m0, (N, 1))
+    C = np.broadcast_to(P0, (N, N, 4, 4)).copy()
+    for _ in range(15):
+        det = rng.random(N) < 0.6
+        ys = rng.normal(size=(N, 2))
+        C, K = kalman.cross_covariance_step(C, det, model)
+        assert np.all(K[~det] == 0.0)
+        m_pred = m @ model.A.T
+        m = m_pred + np.einsum("iab,ib->ia", K, ys - m_pred @ model.H.T)
+        for i, f in enumerate(filters):
+            f.step(ys[i:i + 1] if det[i] else [])
+            np.testing.assert_allclose(C[i, i], f.cov, rtol=1e-11, atol=1e-14)
+            np.testing.assert_allclose(m[i], f.mean, rtol=1e-11, atol=1e-13)
+        np.testing.assert_array_equal(C, np.swapaxes(C, 0, 1).swapaxes(-1, -2))
+        assert np.linalg.eigvalsh(C.transpose(0, 2, 1, 3).reshape(4 * N, 4 * N)).min() > -1e-12
+
+
+def test_cross_covariance_rejects_bad_input():
+    model = models.turn_model(0.0, 0.1, 0.05, 0.1)
+    C = np.broadcast_to(np.eye(4), (2, 2, 4, 4))
+    with pytest.raises(FusionInputError, match=r"C must have shape \(N, N, 4, 4\)"):
+        kalman.cross_covariance_step(C[:, :1], np.array([True, False]), model)
+    with pytest.raises(FusionInputError, match="detected must be a boolean array"):
+        kalman.cross_covariance_step(C, np.array([1, 0]), model)
+    with pytest.raises(FusionInputError, match="C contains non-finite"):
+        kalman.cross_covariance_step(C * np.nan, np.array([True, False]), model)
+    with pytest.raises(FusionInputError, match="model must be"):
+        kalman.cross_covariance_step(C, np.array([True, False]), "model")

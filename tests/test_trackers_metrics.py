@@ -120,3 +120,17 @@ def test_cardinality_error():
     np.testing.assert_array_equal(metrics.cardinality_error([1, 3, 2], [1, 2, 4]), [0, 1, -2])
     with pytest.raises(ValueError, match="equal 1-D shapes"):
         metrics.cardinality_error([1, 2], [1])
+
+
+def test_metrics_refuse_complex_booleans_and_fractional_components():
+    """Regression: complex points were truncated to their real part and components=(0.5,)
+    to index 0."""
+    est, truth = np.zeros((3, 4)), np.ones((3, 4))
+    with pytest.raises(ValueError, match="components must be integer indices"):
+        metrics.mse(est, truth, components=(0.5, 1))
+    with pytest.raises(ValueError, match="components must be integer indices"):
+        metrics.mncm(np.broadcast_to(np.eye(4), (3, 4, 4)), components=(True, False))
+    with pytest.raises(ValueError, match="X must be an array of real numbers"):
+        metrics.ospa(np.array([[1 + 1j, 0.0]]), E, 1.0, 2)
+    with pytest.raises(ValueError, match="estimates must be an array of real numbers"):
+        metrics.mse([[True, 0.0]], [[0.0, 0.0]])

@@ -7,6 +7,7 @@ import pytest
 from scipy.integrate import quad_vec
 from scipy.linalg import expm
 
+from fusion_opt import FusionInputError
 from trackers import models
 
 
@@ -64,6 +65,11 @@ def test_linear_gaussian_is_frozen_and_read_only():
         ({"R": -np.eye(2)}, "R must be positive definite"),
         ({"Q": np.diag([1.0, 1.0, 1.0, -1.0])}, "Q must be positive semidefinite"),
         ({"R": np.array([[1.0, 0.5], [0.0, 1.0]])}, "R must be symmetric"),
+        # regression: a complex A was truncated to its real part with a ComplexWarning
+        ({"A": np.eye(4) + 0.1j * np.eye(4)}, "A must be an array of real numbers, got complex"),
+        ({"H": [[True, False, False, False], [False, True, False, False]]}, "H must be"),
+        ({"Q": "eye"}, "Q must be an array of real numbers"),
+        ({"R": None}, "R must be an array of real numbers"),
     ],
 )
 def test_linear_gaussian_rejects_bad_input(kwargs, match):
@@ -82,3 +88,8 @@ def test_discretize_rejects_bad_input():
         models.discretize(F[:3], L, np.eye(2), 0.1)
     with pytest.raises(ValueError, match="turn rate"):
         models.turn_F(np.inf)
+    for bad in ("0.1", 1j, None, True):  # regression: float("0.1") and float(True) passed
+        with pytest.raises(FusionInputError, match="turn rate"):
+            models.turn_F(bad)
+        with pytest.raises(FusionInputError, match="dt must be a real number"):
+            models.turn_model(0.0, 0.1, 0.05, bad)

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest, gamma, multivariate_normal
 
-from trackers import metrics, models, rbmcda, scenarios
+from fusion_opt import FusionInputError
+from trackers import metrics, rbmcda, scenarios
 
 
 def model_and_prior():
@@ -21,9 +22,9 @@ def test_birth_probability_of_first_measurement():
     N, pb, cp, cd = 4000, 0.2, 0.05, 1 / 16
     out = rbmcda.run([y[None]], model, m0, P0, rng=np.random.default_rng(0), dt=cfg.dt,
                      n_particles=N, birth_prob=pb, clutter_prior=cp, clutter_density=cd)
-    # prior is at time 0, the measurement at time dt: predict the new-target prior first
-    mp, Pp = model.A @ m0, model.A @ P0 @ model.A.T + model.Q
-    Lb = multivariate_normal(model.H @ mp, model.H @ Pp @ model.H.T + model.R).pdf(y)
+    # a new target's prior (m0, P0) is its state at the time of the measurement that
+    # creates it (module docstring): not predicted
+    Lb = multivariate_normal(model.H @ m0, model.H @ P0 @ model.H.T + model.R).pdf(y)
     p_birth = pb * Lb / (pb * Lb + (1 - pb) * cp * cd)
     n_born = round(out.expected_n_targets[0] * N)  # equal weights: the fraction with a target
     assert binomtest(n_born, N, p_birth).pvalue > 1e-3
@@ -128,5 +129,135 @@ def test_rbmcda_unexplainable_measurement_raises():
                    birth_prob=0.0, clutter_prior=0.0)
 
 
-def test_position_constant():
-    assert models.POSITION == (0, 1)
+def dense_posterior(model, m0, P0, ys):
+    """Filtered moments of x_k given y_0..y_k for every k, by conditioning the joint Gaussian
+    of all states: x_0 ~ N(m0, P0), x_k = A x_{k-1} + q_k, y_k = H x_k + r_k."""
+    A, Q, H, R = model.A, model.Q, model.H, model.R
+    n, T = model.n, len(ys)
+    mu = np.concatenate([np.linalg.matrix_power(A, k) @ m0 for k in range(T)])
+    Sig = np.zeros((T * n, T * n))
+    for i in range(T):
+        for j in range(T):
+            k = min(i, j)  # Cov(x_i, x_j) = A^(i-k) Cov(x_k, x_k) A^(j-k)^T
+            Pk = np.linalg.matrix_power(A, k) @ P0 @ np.linalg.matrix_power(A, k).T + sum(
+                np.linalg.matrix_power(A, l) @ Q @ np.linalg.matrix_power(A, l).T
+                for l in range(k))
+            Sig[i * n:(i + 1) * n, j * n:(j + 1) * n] = (
+                np.linalg.matrix_power(A, i - k) @ Pk @ np.linalg.matrix_power(A, j - k).T)
+    means, covs = [], []
+    for k in range(T):
+        G = np.kron(np.eye(k + 1, T), H)  # rows of y_0..y_k
+        S = G @ Sig @ G.T + np.kron(np.eye(k + 1), R)
+        K = Sig @ G.T @ np.linalg.inv(S)
+        post_m = mu + K @ (np.concatenate(ys[:k + 1]) - G @ mu)
+        post_P = Sig - K @ S @ K.T
+        means.append(post_m[k * n:(k + 1) * n])
+        covs.append(post_P[k * n:(k + 1) * n, k * n:(k + 1) * n])
+    return np.array(means), np.array(covs)
+
+
+def test_single_target_without_clutter_is_the_kalman_posterior():
+    """No clutter (clutter_prior = 0), births all but impossible after the first
+    measurement (p_b = 1e-300) and lifetimes of ~10^6 s: every particle holds the same one
+    target, born from the first measurement, whose moments are the exact Gaussian posterior
+    of a target with prior (m0, P0) at the first step. It keeps id 0 at every step."""
+    cfg, model, m0, P0 = model_and_prior()
+    rng = np.random.default_rng(12)
+    x = np.array([0.2, -0.3, 1.0, 0.5])
+    ys = []
+    for _ in range(12):
+        ys.append(model.H @ x + 0.05 * rng.standard_normal(2))
+        x = model.A @ x
+    out = rbmcda.run([y[None] for y in ys], model, m0, P0, rng=np.random.default_rng(1),
+                     dt=cfg.dt, birth_prob=1e-300, clutter_prior=0.0, lifetime_scale=1e6)
+    ref_m, ref_P = dense_posterior(model, m0, P0, ys)
+    for k, tracks in enumerate(out):
+        assert [tr.target_id for tr in tracks] == [0]
+        np.testing.assert_allclose(tracks[0].mean, ref_m[k], rtol=1e-8, atol=1e-9)
+        np.testing.assert_allclose(tracks[0].cov, ref_P[k], rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(out.ess, 20.0, rtol=1e-12)
+    assert not out.resampled.any()
+
+
+def test_survival_is_the_gamma_survival_function_and_old_targets_die():
+    ages = np.array([0.0, 1e-4, 0.01, 0.5, 1.0, 3.0, 20.0, 200.0])
+    for shape, scale in ((2.0, 0.5), (0.7, 3.0), (5.0, 0.01)):
+        np.testing.assert_allclose(rbmcda.survival(ages, shape, scale),
+                                   gamma(shape, scale=scale).sf(ages), rtol=1e-12, atol=0)
+    # survival ratio against u: the Gamma(2, 0.5) survival from age 1.0 to 1.01
+    alive = np.ones((1, 3), dtype=bool)
+    tau = np.zeros((1, 3))
+    ratio = gamma(2.0, scale=0.5).sf(1.01) / gamma(2.0, scale=0.5).sf(1.0)
+    u = np.array([[ratio - 1e-9, ratio + 1e-9, 0.0]])
+    np.testing.assert_array_equal(rbmcda.deaths(alive, tau, 1.0, 1.01, 2.0, 0.5, u),
+                                  [[False, True, False]])
+    # a target so old that both survival values underflow to 0 dies (0/0 is not survival)
+    assert rbmcda.survival(400.0, 2.0, 0.5) == 0.0
+    np.testing.assert_array_equal(rbmcda.deaths(alive, tau, 400.0, 400.01, 2.0, 0.5, u * 0),
+                                  [[True, True, True]])
+    # a dead slot stays dead
+    assert not rbmcda.deaths(~alive, tau, 1.0, 1.01, 2.0, 0.5, u).any()
+
+
+def test_stepped_filter_equals_run_bit_for_bit():
+    cfg, model, m0, P0 = model_and_prior()
+    scans = scenarios.simulate_table2(cfg, np.random.default_rng(8)).nodes[3].scans[:250]
+    out = rbmcda.run(scans, model, m0, P0, rng=np.random.default_rng(2), dt=cfg.dt)
+    assert 0 < out.resampled.sum() < len(scans) and out.n_targets.max() >= 3
+    f = rbmcda.RBMCDA(model, m0, P0, rng=np.random.default_rng(2), dt=cfg.dt, name="n4")
+    for k, scan in enumerate(scans):
+        est = f.step(scan)
+        assert est.node == "n4" and est.time == (k + 1) * cfg.dt and f.steps == k + 1
+        assert est.ids.tolist() == [tr.target_id for tr in out[k]]
+        np.testing.assert_array_equal(est.means.reshape(-1, 4),
+                                      np.array([tr.mean for tr in out[k]]).reshape(-1, 4))
+        np.testing.assert_array_equal(est.covs.reshape(-1, 4, 4),
+                                      np.array([tr.cov for tr in out[k]]).reshape(-1, 4, 4))
+        assert (f.ess, f.resampled) == (out.ess[k], out.resampled[k])
+        assert f.expected_n_targets == out.expected_n_targets[k]
+    assert f.step([], time=99.0).time == 99.0
+    parts = f.particles
+    assert parts.M.shape[:2] == parts.alive.shape == parts.ids.shape
+    assert np.all(parts.ids[~parts.alive] == -1) and np.all(parts.ids[parts.alive] >= 0)
+    with pytest.raises(ValueError):
+        parts.alive[0, 0] = True
+    with pytest.raises(ValueError):
+        f.log_weights[0] = 0.0
+
+
+def test_far_measurement_without_clutter_keeps_weights_normalised():
+    """Regression: with clutter_prior = 0 a measurement 1e10 from everything gave every
+    particle the same log-weight near -5e18; normalising lost log N (ESS 0.05 of 20)."""
+    cfg, model, m0, P0 = model_and_prior()
+    scans = [[[0.1, 0.1]], [[1e10, 0.0]], [[0.1, 0.1]]]
+    out = rbmcda.run(scans, model, m0, P0, rng=np.random.default_rng(0), dt=cfg.dt,
+                     clutter_prior=0.0)
+    assert np.all((out.ess >= 1.0 - 1e-9) & (out.ess <= 20.0 + 1e-9))
+    assert all(np.all(np.isfinite(tr.mean)) for step in out for tr in step)
+
+
+def test_impossible_measurement_raises_and_leaves_the_filter_unchanged():
+    """Regression: a measurement with likelihood 0 under every target and the birth prior
+    and clutter_prior = 0 made every weight and estimate NaN."""
+    cfg, model, m0, P0 = model_and_prior()
+    f = rbmcda.RBMCDA(model, m0, P0, rng=np.random.default_rng(0), dt=cfg.dt,
+                      clutter_prior=0.0)
+    f.step([[0.1, 0.1]])
+    before = f.particles
+    with pytest.raises(FusionInputError, match="likelihood 0 under every particle"):
+        f.step([[1e200, 0.0]])
+    assert f.steps == 1
+    for a, b in zip(f.particles, before, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["dt", "clutter_prior", "birth_prob", "lifetime_scale"])
+@pytest.mark.parametrize("bad", [None, "0.01", 0.01 + 0j, True])
+def test_rbmcda_refuses_non_numbers(name, bad):
+    """Regression: float() accepted "0.01" and True; None and complex raised TypeError."""
+    _, model, m0, P0 = model_and_prior()
+    args = {"rng": np.random.default_rng(0), "dt": 0.01} | {name: bad}
+    with pytest.raises(FusionInputError, match=name):
+        rbmcda.run([np.zeros((1, 2))], model, m0, P0, **args)
+    with pytest.raises(FusionInputError, match="scans must be"):
+        rbmcda.run(None, model, m0, P0, rng=np.random.default_rng(0), dt=0.01)

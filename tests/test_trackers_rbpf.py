@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from fusion_opt import Estimates, FusionInputError
 from trackers import kalman, metrics, rbpf, scenarios
 
 
@@ -120,3 +121,70 @@ def test_rbpf_rejects_bad_input(kwargs, match):
     args = {"rng": np.random.default_rng(0)} | kwargs
     with pytest.raises(ValueError, match=match):
         rbpf.run([np.zeros((1, 2))], model, m0, P0, **args)
+
+
+def test_stepped_filter_equals_run_bit_for_bit():
+    cfg, model, m0, P0 = table1(n_steps=300)
+    scans = scenarios.simulate_table1(cfg, np.random.default_rng(6)).nodes[0].scans
+    out = rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(9), resample_threshold=0.9)
+    assert 0 < out.resampled.sum() < len(scans)  # the comparison covers both kinds of step
+    pf = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(9), resample_threshold=0.9,
+                   name=("node", 1))
+    for t, scan in enumerate(scans):
+        est = pf.step(scan)
+        assert isinstance(est, Estimates) and est.ids.tolist() == [0]
+        assert est.time is None and est.node == ("node", 1)
+        np.testing.assert_array_equal(est.means[0], out.means[t])
+        np.testing.assert_array_equal(est.covs[0], out.covs[t])
+        assert (pf.ess, pf.resampled) == (out.ess[t], out.resampled[t])
+    assert pf.steps == len(scans) and pf.step([], time=7.5).time == 7.5
+    assert pf.means.shape == (20, 4) and pf.covs.shape == (20, 4, 4)
+    assert np.exp(pf.log_weights).sum() == pytest.approx(1.0, rel=1e-12)
+    with pytest.raises(ValueError):
+        pf.log_weights[0] = 0.0
+
+
+def test_far_measurement_without_clutter_keeps_weights_normalised():
+    """Regression: with clutter_prior = 0 a measurement far from every particle (here
+    1e10 away) gave every particle a log-weight near -1e20; normalising by subtracting
+    their log-sum-exp lost log N to rounding, so the weights summed to N (ESS 0.05 of 20)
+    and the mean was N times too large. Without clutter the RBPF is the Kalman filter."""
+    _, model, m0, P0 = table1()
+    scans = [np.array([[-4.0, -0.2]]), np.array([[1e10, 0.0]]), np.empty((0, 2)),
+             np.array([[1e10, 1.0]])]
+    out = rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(0), clutter_prior=0.0)
+    ref = kalman.run(scans, model, m0, P0)
+    np.testing.assert_allclose(out.means, ref.means, rtol=1e-9)
+    np.testing.assert_allclose(out.covs, ref.covs, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out.ess, 20.0, rtol=1e-12)
+
+
+def test_impossible_measurement_raises_and_leaves_the_filter_unchanged():
+    """Regression: a measurement whose likelihood underflows to 0 for every particle
+    (squared Mahalanobis distance above 1e308) with clutter_prior = 0 turned every weight,
+    mean and covariance into NaN. No hypothesis explains it: the step refuses it."""
+    _, model, m0, P0 = table1()
+    pf = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), clutter_prior=0.0)
+    pf.step([[-4.0, -0.2]])
+    before = (pf.means.copy(), pf.covs.copy(), pf.log_weights.copy(), pf.steps)
+    with pytest.raises(FusionInputError, match="likelihood 0 under every particle"):
+        pf.step([[1e200, 0.0]])
+    np.testing.assert_array_equal(pf.means, before[0])
+    np.testing.assert_array_equal(pf.covs, before[1])
+    np.testing.assert_array_equal(pf.log_weights, before[2])
+    assert pf.steps == before[3]
+    # with clutter possible the same measurement is clutter and everything stays finite
+    out = rbpf.run([[[1e200, 0.0]]], model, m0, P0, rng=np.random.default_rng(0))
+    assert np.all(np.isfinite(out.means)) and out.ess[0] == pytest.approx(20.0)
+
+
+@pytest.mark.parametrize("name", ["clutter_prior", "clutter_density", "resample_threshold"])
+@pytest.mark.parametrize("bad", [None, "0.5", 0.5 + 0j, True, np.nan])
+def test_rbpf_refuses_non_numbers(name, bad):
+    """Regression: float() accepted "0.5" and True; None and complex raised TypeError."""
+    _, model, m0, P0 = table1()
+    with pytest.raises(FusionInputError, match=name):
+        rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), **{name: bad})
+    pf = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0))
+    with pytest.raises(FusionInputError, match="scan must be"):
+        pf.step(None)

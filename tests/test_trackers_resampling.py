@@ -38,3 +38,36 @@ def test_logsumexp_matches_scipy():
     np.testing.assert_allclose(resampling.logsumexp(a, axis=0), ref(a, axis=0), rtol=1e-13)
     assert resampling.logsumexp(a) == pytest.approx(ref(a), rel=1e-13)
     assert resampling.logsumexp(np.full(3, -np.inf)) == -np.inf
+
+
+def test_normalisation_survives_a_huge_common_offset():
+    """Regression: l - logsumexp(l) lost log N to rounding when every l_i was near -1e20
+    (the weights then summed to N)."""
+    for offset in (0.0, -1e20, 1e20, -1e300):
+        logw = offset + np.log(np.array([1.0, 1.0, 2.0, 4.0]))
+        w = np.exp(resampling.normalize_log_weights(logw))
+        if offset == 0.0 or abs(offset) < 1e16:
+            np.testing.assert_allclose(w, [0.125, 0.125, 0.25, 0.5], rtol=1e-12)
+        else:  # the differences themselves are below the offset's rounding: equal weights
+            np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-12)
+        assert resampling.effective_sample_size(logw) <= 4.0 + 1e-12
+
+
+def test_end_of_step_resamples_only_below_the_threshold():
+    logw = np.log(np.array([0.7, 0.1, 0.1, 0.1])) - 5.0  # ESS = 1 / 0.52
+    rng = np.random.default_rng(4)
+    kept = resampling.end_of_step(logw, 1.9, rng)
+    assert kept.ancestors is None and kept.ess == pytest.approx(1 / 0.52, rel=1e-12)
+    np.testing.assert_allclose(kept.weights, [0.7, 0.1, 0.1, 0.1], rtol=1e-12)
+    np.testing.assert_allclose(kept.logw, np.log(kept.weights), rtol=1e-12)
+    state = rng.bit_generator.state
+    done = resampling.end_of_step(logw, 2.0, np.random.default_rng(4))
+    assert rng.bit_generator.state == state  # no draw when not resampling
+    np.testing.assert_allclose(done.weights, kept.weights)
+    np.testing.assert_array_equal(done.logw, np.full(4, -np.log(4)))
+    # systematic resampling of (0.7, 0.1, 0.1, 0.1): particle 0 two or three times, and the
+    # same ancestors as systematic_resample with the same generator state
+    counts = np.bincount(done.ancestors, minlength=4)
+    assert counts.sum() == 4 and counts[0] in (2, 3)
+    ref = resampling.systematic_resample(logw, np.random.default_rng(4))
+    np.testing.assert_array_equal(done.ancestors, ref)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
+from fusion_opt import FusionInputError
 from trackers import scenarios
 from trackers.scenarios import CLUTTER
 
@@ -103,8 +104,10 @@ def test_config_overrides_and_validation():
         scenarios.Table2Config(dt=0.0)
     with pytest.raises(ValueError, match="region must be"):
         scenarios.Table1Config(region=((1.0, -1.0), (0.0, 1.0)))
-    with pytest.raises(ValueError, match=r"targets\[0\] must have death > birth"):
-        scenarios.Table2Config(targets=(scenarios.TargetSpec((0, 0, 0, 0), 2.0, 1.0),))
+    with pytest.raises(ValueError, match="death must be > birth"):
+        scenarios.TargetSpec((0, 0, 0, 0), 2.0, 1.0)
+    with pytest.raises(ValueError, match=r"targets\[0\]: death must be > birth"):
+        scenarios.Table2Config(targets=({"x0": (0, 0, 0, 0), "birth": 2.0, "death": 1.0},))
     with pytest.raises(ValueError, match="rng must be a numpy.random.Generator"):
         scenarios.simulate_table2(scenarios.Table2Config(), 42)
 
@@ -120,3 +123,56 @@ def test_table2_targets_from_toml_tables():
     np.testing.assert_array_equal(data.n_alive[[0, 49, 50, 99]], [1, 1, 2, 2])
     with pytest.raises(ValueError, match=r"targets\[0\] is not a valid TargetSpec"):
         scenarios.Table2Config(targets=[{"x0": [0, 0, 0, 0], "born": 0.0}])
+
+
+def _numeric_fields(cls):
+    """Names of the fields of a config whose default is a number or holds numbers."""
+    return [f.name for f in dataclasses.fields(cls)
+            if f.name not in ("truth_process_noise", "targets")]
+
+
+def _poisoned(value, bad):
+    """``value`` (a number or nested tuples of numbers) with its first number replaced."""
+    if isinstance(value, tuple):
+        return (_poisoned(value[0], bad),) + value[1:]
+    return bad
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, True, None, "0.5", 1 + 0j])
+@pytest.mark.parametrize("cls", [scenarios.Table1Config, scenarios.Table2Config])
+def test_every_numeric_config_field_refuses_non_finite_and_non_numbers(cls, bad):
+    """Regression: NaN passed every check written as `x < 0` (NaN < 0 is False), e.g.
+    turn_noise_sd, clutter_fraction, x0, turn_windows, clutter_rate; booleans passed as 1."""
+    default = cls()
+    for name in _numeric_fields(cls):
+        value = _poisoned(getattr(default, name), bad)
+        with pytest.raises(FusionInputError, match=name):
+            cls(**{name: value})
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, True, None, "1", 1j])
+@pytest.mark.parametrize("field", ["x0", "birth", "death", "turn_windows", "turn_rate"])
+def test_target_spec_refuses_non_finite_and_non_numbers(field, bad):
+    good = {"x0": (0.0, 1.0, 1.0, 0.0), "birth": 0.0, "death": 1.0,
+            "turn_windows": ((0.2, 0.4, 1.0),), "turn_rate": 0.5}
+    value = _poisoned(good[field], bad)
+    with pytest.raises(FusionInputError, match=field):
+        scenarios.TargetSpec(**(good | {field: value}))
+    with pytest.raises(FusionInputError, match=rf"targets\[0\]: {field}"):
+        scenarios.Table2Config(targets=(good | {field: value},))
+
+
+def test_configs_refuse_no_nodes_and_non_boolean_flags():
+    """Regression: p_detect=() made a scenario with no nodes; a number passed as the
+    truth_process_noise flag."""
+    for cls in (scenarios.Table1Config, scenarios.Table2Config):
+        with pytest.raises(FusionInputError, match="p_detect must hold one detection"):
+            cls(p_detect=())
+        with pytest.raises(FusionInputError, match="p_detect must have 1 dimension"):
+            cls(p_detect=0.9)
+        with pytest.raises(FusionInputError, match="truth_process_noise must be True or False"):
+            cls(truth_process_noise=1)
+        with pytest.raises(FusionInputError, match="n_particles must be an integer"):
+            cls(n_particles=True)
+    with pytest.raises(FusionInputError, match="targets must be a sequence"):
+        scenarios.Table2Config(targets=None)

@@ -1,7 +1,10 @@
 """Trackers: Kalman filter, RBPF and RBMCDA, scenario simulators and metrics.
 
-Data flows one way: these produce estimates; ``fusion_opt`` fuses them; ``studies`` drives
-both. Nothing here imports ``fusion_opt`` or ``studies``.
+Each filter steps one scan at a time (``kalman.KalmanFilter``, ``rbpf.RBPF``,
+``rbmcda.RBMCDA``: ``.step(scan, time=None) -> fusion_opt.Estimates``) over a pure step
+function, and ``run(scans, ...)`` loops over the steps. Data flows one way: these produce
+estimates; ``fusion_opt`` fuses them; ``studies`` drives both. Trackers use fusion_opt's
+``Estimates``, ``FusionInputError`` and input checks, and nothing of ``studies``.
 """
 
 from trackers import kalman, metrics, models, rbmcda, rbpf, resampling, scenarios

@@ -1,33 +1,129 @@
 """Input checks shared by the trackers' public entry points.
 
-Every check raises ``ValueError`` whose message names the argument and what is wrong, so a
-caller who passes a (n, 1) column, a NaN or a probability of 1.3 learns which one at once.
+Every check raises ``fusion_opt.FusionInputError`` (a ``ValueError``) whose message names the
+argument and what is wrong, so a caller who passes a (n, 1) column, a NaN, a string, a
+boolean, a complex number or a probability of 1.3 learns which one at once; nothing is
+silently converted (a complex value is never truncated to its real part).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import numbers
+from collections.abc import Hashable, Mapping
 
 import numpy as np
 
+from fusion_opt import FusionInputError
+from fusion_opt import validation as _fo
+
 
 def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.ndarray:
-    """Return ``value`` as a float array after checking its dimension, shape and finiteness.
+    """``value`` as a finite real float array after checking its dimension and shape.
 
     ``shape`` may contain ``None`` for a free axis.
     """
-    arr = np.asarray(value, dtype=float)
+    if not isinstance(value, np.ndarray) and _contains_bool(value):
+        raise FusionInputError(f"{name} must be an array of real numbers, got a boolean in it")
+    arr = _fo.real_array(value, name)
     if ndim is not None and arr.ndim != ndim:
-        raise ValueError(f"{name} must have {ndim} dimension(s), got shape {arr.shape}")
+        raise FusionInputError(f"{name} must have {ndim} dimension(s), got shape {arr.shape}")
     if shape is not None:
         if arr.ndim != len(shape) or any(
             s is not None and s != a for s, a in zip(shape, arr.shape, strict=True)
         ):
             want = tuple("any" if s is None else s for s in shape)
-            raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+            raise FusionInputError(f"{name} must have shape {want}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains non-finite values")
+        raise FusionInputError(f"{name} contains non-finite values")
     return arr
+
+
+def _contains_bool(value) -> bool:
+    """Whether a (nested) list or tuple holds a boolean, which numpy would turn into 0 or 1
+    beside numbers."""
+    if isinstance(value, bool | np.bool_):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype == bool
+    return isinstance(value, list | tuple) and any(_contains_bool(v) for v in value)
+
+
+def real(name: str, value) -> float:
+    """A real scalar (int, float or a 0-d real array), refusing None, strings, booleans and
+    complex numbers; NaN and inf pass here (the callers say which range is allowed)."""
+    if isinstance(value, bool | np.bool_) or not (
+        isinstance(value, numbers.Real)
+        or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")
+    ):
+        raise FusionInputError(f"{name} must be a real number, got {value!r}")
+    return float(value)
+
+
+def finite(name: str, value) -> float:
+    x = real(name, value)
+    if not np.isfinite(x):
+        raise FusionInputError(f"{name} must be a finite real number, got {value!r}")
+    return x
+
+
+def nonnegative(name: str, value) -> float:
+    x = real(name, value)
+    if not (np.isfinite(x) and x >= 0.0):
+        raise FusionInputError(f"{name} must be a finite number >= 0, got {value!r}")
+    return x
+
+
+def positive(name: str, value) -> float:
+    x = real(name, value)
+    if not (np.isfinite(x) and x > 0.0):
+        raise FusionInputError(f"{name} must be a finite positive number, got {value!r}")
+    return x
+
+
+def probability(name: str, value) -> float:
+    p = real(name, value)
+    if not 0.0 <= p <= 1.0:  # False for NaN
+        raise FusionInputError(f"{name} must be a probability in [0, 1], got {value!r}")
+    return p
+
+
+def positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise FusionInputError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def boolean(name: str, value) -> bool:
+    if not isinstance(value, bool | np.bool_):
+        raise FusionInputError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def node_name(value):
+    """A tracker's name, stamped on its Estimates as the node: any hashable, or None."""
+    if value is not None and not isinstance(value, Hashable):
+        raise FusionInputError(f"name must be hashable (e.g. a string), got "
+                               f"{type(value).__name__}")
+    return value
+
+
+def step_time(value) -> float | None:
+    """The time stamped on a step's Estimates: None or a finite real number."""
+    return None if value is None else finite("time", value)
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (a filter's state is shown, never lent out to write)."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+def generator(name: str, value) -> np.random.Generator:
+    if not isinstance(value, np.random.Generator):
+        raise FusionInputError(
+            f"{name} must be a numpy.random.Generator, got {type(value).__name__}")
+    return value
 
 
 def _symmetric(name: str, value, n: int) -> tuple[np.ndarray, float]:
@@ -35,7 +131,7 @@ def _symmetric(name: str, value, n: int) -> tuple[np.ndarray, float]:
     P = finite_array(name, value, shape=(n, n))
     scale = max(1.0, float(np.max(np.abs(P))))
     if not np.allclose(P, P.T, rtol=1e-9, atol=1e-12 * scale):
-        raise ValueError(f"{name} must be symmetric")
+        raise FusionInputError(f"{name} must be symmetric")
     return P, scale
 
 
@@ -45,7 +141,7 @@ def covariance(name: str, value, n: int) -> np.ndarray:
     try:
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
-        raise ValueError(f"{name} must be positive definite") from None
+        raise FusionInputError(f"{name} must be positive definite") from None
     return P
 
 
@@ -53,50 +149,41 @@ def psd_covariance(name: str, value, n: int) -> np.ndarray:
     """Check a symmetric positive-semidefinite (n, n) matrix (a process noise may be singular)."""
     P, scale = _symmetric(name, value, n)
     if np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) < -1e-10 * scale:
-        raise ValueError(f"{name} must be positive semidefinite")
+        raise FusionInputError(f"{name} must be positive semidefinite")
     return P
 
 
-def probability(name: str, value) -> float:
-    p = float(value)
-    if not np.isfinite(p) or not 0.0 <= p <= 1.0:
-        raise ValueError(f"{name} must be a probability in [0, 1], got {value!r}")
-    return p
+def scan(name: str, value, d: int) -> np.ndarray:
+    """The measurements of one step as a finite (k, d) float array, k >= 0.
+
+    An empty scan may be given as ``[]`` or any (0, d) array; a single measurement must
+    still be a (1, d) row.
+    """
+    if value is None:
+        raise FusionInputError(f"{name} must be an array-like (k, {d}) of measurements, "
+                               "got None (an empty step is [] or a (0, d) array)")
+    arr = finite_array(name, value)
+    if arr.shape == (0,):
+        arr = arr.reshape(0, d)
+    if arr.ndim != 2 or arr.shape[1] != d:
+        raise FusionInputError(f"{name} must have shape (k, {d}), got {arr.shape}")
+    return arr
 
 
-def positive(name: str, value) -> float:
-    x = float(value)
-    if not np.isfinite(x) or x <= 0.0:
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
-    return x
-
-
-def positive_int(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
-
-
-def generator(name: str, value) -> np.random.Generator:
-    if not isinstance(value, np.random.Generator):
-        raise ValueError(f"{name} must be a numpy.random.Generator, got {type(value).__name__}")
-    return value
-
-
-def scans(value: Sequence, d: int) -> list[np.ndarray]:
+def scans(value, d: int) -> list[np.ndarray]:
     """Check a sequence of per-step measurement arrays, each (k_t, d) with k_t >= 0."""
+    if value is None or isinstance(value, str | bytes | Mapping):
+        raise FusionInputError(
+            f"scans must be a sequence of (k_t, {d}) arrays, got {type(value).__name__}")
     if isinstance(value, np.ndarray) and value.ndim != 3:
-        raise ValueError(f"scans must be a sequence of (k_t, {d}) arrays, got array {value.shape}")
-    out = []
-    for t, s in enumerate(value):
-        arr = np.asarray(s, dtype=float)
-        if arr.size == 0:
-            arr = arr.reshape(0, d)
-        if arr.ndim != 2 or arr.shape[1] != d:
-            raise ValueError(f"scans[{t}] must have shape (k, {d}), got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"scans[{t}] contains non-finite values")
-        out.append(arr)
-    if not out:
-        raise ValueError("scans must contain at least one step")
-    return out
+        raise FusionInputError(
+            f"scans must be a sequence of (k_t, {d}) arrays, got array {value.shape}")
+    try:
+        items = list(value)
+    except TypeError:
+        raise FusionInputError(
+            f"scans must be a sequence of (k_t, {d}) arrays, got {type(value).__name__}"
+        ) from None
+    if not items:
+        raise FusionInputError("scans must contain at least one step")
+    return [scan(f"scans[{t}]", s, d) for t, s in enumerate(items)]

@@ -27,24 +27,30 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
+from fusion_opt import FusionInputError
 from trackers import _checks
 
 
-def _components(name: str, arr: np.ndarray, components) -> np.ndarray:
+def _indices(components, n: int) -> np.ndarray:
+    """``components`` as integer state indices in [0, n)."""
+    a = np.asarray(components)
+    if a.dtype.kind not in "iu" or a.size == 0 or np.any(a < 0) or np.any(a >= n):
+        raise FusionInputError(f"components must be integer indices in [0, {n}), got "
+                               f"{components!r}")
+    return a.reshape(-1)
+
+
+def _components(arr: np.ndarray, components) -> np.ndarray:
     if components is None:
         return arr
-    idx = np.asarray(components, dtype=int).reshape(-1)
-    n = arr.shape[-1]
-    if idx.size == 0 or np.any(idx < 0) or np.any(idx >= n):
-        raise ValueError(f"components must be indices in [0, {n}), got {components!r}")
-    return arr[..., idx]
+    return arr[..., _indices(components, arr.shape[-1])]
 
 
 def _pair(estimates, truth):
     m = _checks.finite_array("estimates", estimates, ndim=2)
     x = _checks.finite_array("truth", truth, ndim=2)
     if m.shape != x.shape:
-        raise ValueError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
+        raise FusionInputError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
     return m, x
 
 
@@ -52,7 +58,7 @@ def mse(estimates, truth, components=None) -> float:
     """Mean over time of the squared error norm. estimates, truth (T, n); ``components``
     selects state indices (e.g. models.POSITION), default the full state."""
     m, x = _pair(estimates, truth)
-    e = _components("estimates", m - x, components)
+    e = _components(m - x, components)
     return float(np.mean(np.sum(e * e, axis=-1)))
 
 
@@ -64,10 +70,9 @@ def rmse(estimates, truth, components=None) -> float:
 def _cov_block(covs, components):
     P = _checks.finite_array("covs", covs, ndim=3)
     if P.shape[1] != P.shape[2]:
-        raise ValueError(f"covs must be (T, n, n), got {P.shape}")
+        raise FusionInputError(f"covs must be (T, n, n), got {P.shape}")
     if components is not None:
-        idx = np.asarray(components, dtype=int).reshape(-1)
-        _components("covs", P[:, 0, :], idx)  # range check
+        idx = _indices(components, P.shape[1])
         P = P[:, idx[:, None], idx[None, :]]
     return P
 
@@ -84,10 +89,11 @@ def nees(estimates, truth, covs, components=None) -> np.ndarray:
     m, x = _pair(estimates, truth)
     P = _cov_block(covs, components)
     if P.shape[0] != m.shape[0]:
-        raise ValueError(f"covs has {P.shape[0]} steps, estimates {m.shape[0]}")
-    e = _components("estimates", m - x, components)
+        raise FusionInputError(f"covs has {P.shape[0]} steps, estimates {m.shape[0]}")
+    e = _components(m - x, components)
     if e.shape[1] != P.shape[1]:
-        raise ValueError(f"covs blocks are {P.shape[1:]}, errors have {e.shape[1]} components")
+        raise FusionInputError(f"covs blocks are {P.shape[1:]}, errors have {e.shape[1]} "
+                               "components")
     return np.einsum("ti,ti->t", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 
@@ -113,15 +119,13 @@ def nees_bounds(dim: int, level: float = 0.95) -> tuple[float, float]:
 
 
 def _point_sets(X, Y):
-    X = np.asarray(X, dtype=float)
-    Y = np.asarray(Y, dtype=float)
+    X = _checks.finite_array("X", X)
+    Y = _checks.finite_array("Y", Y)
     for name, S in (("X", X), ("Y", Y)):
         if S.ndim != 2:
-            raise ValueError(f"{name} must be a (m, d) array of points, got shape {S.shape}")
-        if not np.all(np.isfinite(S)):
-            raise ValueError(f"{name} contains non-finite values")
+            raise FusionInputError(f"{name} must be a (m, d) array of points, got shape {S.shape}")
     if X.shape[0] and Y.shape[0] and X.shape[1] != Y.shape[1]:
-        raise ValueError(f"X and Y points differ in dimension: {X.shape[1]} vs {Y.shape[1]}")
+        raise FusionInputError(f"X and Y points differ in dimension: {X.shape[1]} vs {Y.shape[1]}")
     return X, Y
 
 
@@ -144,7 +148,7 @@ def ospa(X, Y, c: float, p: float) -> float:
     c = _checks.positive("c", c)
     p = _checks.positive("p", p)
     if p < 1:
-        raise ValueError(f"p must be >= 1, got {p}")
+        raise FusionInputError(f"p must be >= 1, got {p}")
     m, k = sorted((X.shape[0], Y.shape[0]))
     if k == 0:
         return 0.0
@@ -159,21 +163,21 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
     c = _checks.positive("c", c)
     p = _checks.positive("p", p)
     if p < 1:
-        raise ValueError(f"p must be >= 1, got {p}")
+        raise FusionInputError(f"p must be >= 1, got {p}")
     alpha = _checks.positive("alpha", alpha)
     if alpha > 2:
-        raise ValueError(f"alpha must be in (0, 2], got {alpha}")
+        raise FusionInputError(f"alpha must be in (0, 2], got {alpha}")
     m, k = sorted((X.shape[0], Y.shape[0]))
     total = _assignment_cost(X, Y, c, p) + c**p / alpha * (k - m)
     return float(total ** (1.0 / p))
 
 
 def cardinality_error(n_estimated, n_true) -> np.ndarray:
-    """(T,) signed cardinality error: estimated minus true number of targets per step."""
-    a = np.asarray(n_estimated)
-    b = np.asarray(n_true)
-    if a.shape != b.shape or a.ndim != 1:
-        raise ValueError(f"n_estimated {a.shape} and n_true {b.shape} must be equal 1-D shapes")
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        raise ValueError("n_estimated and n_true must be finite")
+    """(T,) signed cardinality error (float): estimated minus true number of targets per
+    step."""
+    a = _checks.finite_array("n_estimated", n_estimated, ndim=1)
+    b = _checks.finite_array("n_true", n_true, ndim=1)
+    if a.shape != b.shape:
+        raise FusionInputError(f"n_estimated {a.shape} and n_true {b.shape} must be equal 1-D "
+                               "shapes")
     return a - b

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
+from fusion_opt import FusionInputError
 from trackers import _checks
 
 #: Indices of the position components in the state [x, y, vx, vy].
@@ -32,9 +33,7 @@ POSITION = (0, 1)
 
 def turn_F(a: float) -> np.ndarray:
     """The (4, 4) drift matrix F(a) of the coordinated-turn model with turn rate a (rad/s)."""
-    a = float(a)
-    if not np.isfinite(a):
-        raise ValueError(f"a (turn rate) must be finite, got {a!r}")
+    a = _checks.finite("a (turn rate)", a)
     return np.array(
         [[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, a], [0.0, 0.0, -a, 0.0]]
     )
@@ -59,10 +58,10 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     F = _checks.finite_array("F", F, ndim=2)
     n = F.shape[0]
     if F.shape != (n, n):
-        raise ValueError(f"F must be square, got shape {F.shape}")
+        raise FusionInputError(f"F must be square, got shape {F.shape}")
     L = _checks.finite_array("L", L, ndim=2)
     if L.shape[0] != n:
-        raise ValueError(f"L must have {n} rows to match F, got shape {L.shape}")
+        raise FusionInputError(f"L must have {n} rows to match F, got shape {L.shape}")
     Qc = _checks.psd_covariance("Qc", Qc, L.shape[1])
     dt = _checks.positive("dt", dt)
 
@@ -83,7 +82,8 @@ class LinearGaussian:
 
     A: (n, n) transition; Q: (n, n) process-noise covariance (PSD);
     H: (d, n) measurement matrix; R: (d, d) measurement-noise covariance (PD).
-    Arrays are validated, copied and made read-only on construction.
+    Arrays are validated (finite and real: a complex matrix is refused, not truncated),
+    copied and made read-only on construction.
     """
 
     A: np.ndarray
@@ -95,11 +95,11 @@ class LinearGaussian:
         A = _checks.finite_array("A", self.A, ndim=2)
         n = A.shape[0]
         if A.shape != (n, n):
-            raise ValueError(f"A must be square, got shape {A.shape}")
+            raise FusionInputError(f"A must be square, got shape {A.shape}")
         Q = _checks.psd_covariance("Q", self.Q, n)
         H = _checks.finite_array("H", self.H, ndim=2)
         if H.shape[1] != n:
-            raise ValueError(f"H must have {n} columns to match A, got shape {H.shape}")
+            raise FusionInputError(f"H must have {n} columns to match A, got shape {H.shape}")
         R = _checks.covariance("R", self.R, H.shape[0])
         for name, arr in (("A", A), ("Q", Q), ("H", H), ("R", R)):
             arr = np.array(arr, dtype=float)

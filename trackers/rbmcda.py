@@ -9,9 +9,12 @@ Per step (time t_k = (k + 1) dt; the prior state is at time 0):
 
 1. Predict every target with the Kalman prediction.
 2. Deaths, drawn from their prior (independent of the measurements): target j of particle
-   i, alive at t_{k-1}, dies before t_k with probability
-       1 - S(t_k - tau_ij) / S(t_{k-1} - tau_ij),
-   S the survival function of the Gamma(lifetime_shape, scale=lifetime_scale) lifetime.
+   i, alive at t_{k-1}, survives to t_k with probability
+       S(t_k - tau_ij) / S(t_{k-1} - tau_ij),
+   S(a) = Q(lifetime_shape, a / lifetime_scale) the survival function of the
+   Gamma(lifetime_shape, scale=lifetime_scale) lifetime (Q the regularised upper
+   incomplete gamma function). A target so old that S(t_{k-1} - tau_ij) underflows to 0
+   dies.
 3. Each measurement y of the step, one at a time. With T_i alive targets the joint prior of
    (birth, association) is
        birth (new target):         p_b
@@ -20,13 +23,18 @@ Per step (time t_k = (k + 1) dt; the prior state is at time 0):
    and when T_i = 0 it is conditioned on there being no existing target to pick, i.e. birth
    and clutter keep the odds p_b : (1 - p_b) pi_c (as the RBMCDA toolbox does by
    normalising its event priors),
-   with likelihoods N(y; H m0, H P0 H^T + R) (birth, from the new-target prior),
-   clutter_density (clutter) and N(y; H m-_ij, S_ij) (target j). The association is drawn
-   from its optimal importance distribution (prior x likelihood, normalised) and the weight
-   is multiplied by the predictive likelihood sum_c prior_c lik_c, as in ``trackers.rbpf``.
-   The chosen target takes the Kalman update and tau_ij = t_k; a birth adds a target
-   initialised by updating the prior (m0, P0) with y.
-4. Resample systematically when ESS < resample_threshold * N.
+   with likelihoods N(y; H m0, H P0 H^T + R) (birth, from the new-target prior m0, P0 as
+   given, not predicted), clutter_density (clutter) and N(y; H m-_ij, S_ij) (target j).
+   The association is drawn from its optimal importance distribution (prior x likelihood,
+   normalised) and the weight is multiplied by the predictive likelihood
+   sum_c prior_c lik_c, as in ``trackers.rbpf``. The chosen target takes the Kalman update
+   and tau_ij = t_k; a birth adds a target initialised by updating the prior (m0, P0) with
+   y. A measurement with predictive likelihood 0 for every particle (clutter_prior = 0 and
+   a squared Mahalanobis distance above ~1e308 from every target and from the birth prior)
+   raises FusionInputError; the particles are then unchanged (the generator has
+   moved on).
+4. Resample systematically when ESS < resample_threshold * N
+   (``trackers.resampling.end_of_step``).
 
 Vectorisation: targets are padded into arrays (N, C, n), (N, C, n, n) with an alive mask
 (N, C); C grows (doubles) when a particle needs a new slot. All steps above are array
@@ -39,6 +47,8 @@ over all particles in which u is alive, with their weights renormalised:
     m_u = sum_i w_i m_iu / W_u,   P_u = sum_i w_i (P_iu + (m_iu - m_u)(.)^T) / W_u.
 So the number of targets and their ids follow the most probable hypothesis, and each
 target's moments use every particle that shares that target (after resampling, usually all).
+
+``filter_step`` is the pure step; the class ``RBMCDA`` holds the particles between steps.
 """
 
 from __future__ import annotations
@@ -48,12 +58,13 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.stats import gamma
+from scipy.special import gammaincc
 
+from fusion_opt import Estimates, FusionInputError
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
-from trackers.resampling import logsumexp, systematic_resample
+from trackers.resampling import end_of_step
 
 
 class Track(NamedTuple):
@@ -94,160 +105,342 @@ class RBMCDAOutput:
         return np.array([len(tr) for tr in self.tracks])
 
 
-class _Particles:
-    """Padded per-particle target arrays. Mutable working state of one ``run`` call."""
+class RBMCDAParams(NamedTuple):
+    """Fixed settings: the model, the new-target prior m0 (n,), P0 (n, n), the step dt, the
+    log-priors of the association events (module docstring, step 3), the Gamma lifetime's
+    shape and scale, and the resampling threshold (a particle count).
 
-    def __init__(self, N: int, m0: np.ndarray, P0: np.ndarray, capacity: int = 4):
-        n = m0.shape[0]
-        self.m0, self.P0 = m0, P0
-        self.M = np.broadcast_to(m0, (N, capacity, n)).copy()
-        self.P = np.broadcast_to(P0, (N, capacity, n, n)).copy()
-        self.alive = np.zeros((N, capacity), dtype=bool)
-        self.ids = np.full((N, capacity), -1, dtype=np.int64)
-        self.tau = np.zeros((N, capacity))
-
-    def grow(self) -> None:
-        """Double the number of slots (new slots are dead and hold the prior)."""
-        N, C, n = self.M.shape
-        self.M = np.concatenate([self.M, np.broadcast_to(self.m0, (N, C, n))], axis=1)
-        self.P = np.concatenate([self.P, np.broadcast_to(self.P0, (N, C, n, n))], axis=1)
-        self.alive = np.concatenate([self.alive, np.zeros((N, C), dtype=bool)], axis=1)
-        self.ids = np.concatenate([self.ids, np.full((N, C), -1, dtype=np.int64)], axis=1)
-        self.tau = np.concatenate([self.tau, np.zeros((N, C))], axis=1)
-
-    def kill(self, dead: np.ndarray) -> None:
-        """Remove the targets in mask ``dead`` (N, C); their slots return to the prior, which
-        keeps the (ignored) dead slots finite and well conditioned."""
-        self.alive &= ~dead
-        self.ids[dead] = -1
-        self.M[dead] = self.m0
-        self.P[dead] = self.P0
-
-    def take(self, idx: np.ndarray) -> None:
-        for name in ("M", "P", "alive", "ids", "tau"):
-            setattr(self, name, getattr(self, name)[idx])
-
-
-def _extract(parts: _Particles, w: np.ndarray) -> tuple:
-    """Tracks of the MAP particle, each with mixture moments over the particles sharing it."""
-    best = int(np.argmax(w))
-    tracks = []
-    for slot in np.flatnonzero(parts.alive[best]):
-        uid = parts.ids[best, slot]
-        rows, cols = np.nonzero(parts.ids == uid)  # at most one slot per particle
-        wu = w[rows] / w[rows].sum()
-        mean, cov = mixture_moments(wu, parts.M[rows, cols], parts.P[rows, cols])
-        tracks.append(Track(int(uid), mean, cov))
-    return tuple(tracks)
-
-
-def run(
-    scans: Sequence,
-    model: LinearGaussian,
-    m0,
-    P0,
-    *,
-    rng: np.random.Generator,
-    dt: float,
-    n_particles: int = 20,
-    birth_prob: float = 0.01,
-    lifetime_shape: float = 2.0,
-    lifetime_scale: float = 0.5,
-    clutter_prior: float = 0.05,
-    clutter_density: float = 1 / 16,
-    resample_threshold: float = 0.25,
-) -> RBMCDAOutput:
-    """Run RBMCDA over ``scans`` (sequence of T arrays (k_t, d), k_t may be 0).
-
-    model: LinearGaussian with step dt; m0 (n,), P0 (n, n): the prior of a new-born target;
-    dt: the step length (s), used for the lifetimes (step k is at time (k + 1) dt);
-    birth_prob: prior probability that a measurement comes from a new target;
-    lifetime_shape, lifetime_scale: Gamma lifetime since the last associated measurement;
-    clutter_prior: prior probability that a measurement is clutter given no birth;
-    clutter_density: clutter likelihood 1/V; resample when ESS < resample_threshold * N.
-    Returns an RBMCDAOutput; ``out[t]`` is the tuple of Track(target_id, mean, cov) at step t.
+    log_clutter_birth (2, 2): row 0 for a particle with a target alive, row 1 for one with
+    none (birth and clutter renormalised); column 0 log(prior of clutter x clutter
+    density), column 1 log(prior of a birth). log_target: log((1 - p_b)(1 - pi_c)), to
+    share among the particle's alive targets.
     """
-    m0, P0 = kalman.check_prior(model, m0, P0)
-    scans = _checks.scans(scans, model.d)
-    rng = _checks.generator("rng", rng)
-    dt = _checks.positive("dt", dt)
-    N = _checks.positive_int("n_particles", n_particles)
-    pb = _checks.probability("birth_prob", birth_prob)
-    life = gamma(_checks.positive("lifetime_shape", lifetime_shape),
-                 scale=_checks.positive("lifetime_scale", lifetime_scale))
-    cp = _checks.probability("clutter_prior", clutter_prior)
-    log_cd = np.log(_checks.positive("clutter_density", clutter_density))
-    thr = _checks.probability("resample_threshold", resample_threshold) * N
-    if pb == 0.0 and cp == 0.0:
-        # no target can ever be born, and a measurement may not be clutter: nothing explains it
-        raise ValueError("birth_prob and clutter_prior must not both be 0")
-    H, R = model.H, model.R
 
+    model: LinearGaussian
+    m0: np.ndarray
+    P0: np.ndarray
+    dt: float
+    log_clutter_birth: np.ndarray
+    log_target: float
+    lifetime_shape: float
+    lifetime_scale: float
+    threshold: float
+
+
+def event_log_priors(birth_prob: float, clutter_prior: float, clutter_density: float):
+    """(log_clutter_birth (2, 2), log_target) of RBMCDAParams from the probabilities."""
     with np.errstate(divide="ignore"):  # log(0) = -inf removes an option exactly
-        log_pb, log_1mpb = np.log(pb), np.log1p(-pb)
-        log_cp, log_1mcp = np.log(cp), np.log1p(-cp)
+        log_pb, log_1mpb = np.log(birth_prob), np.log1p(-birth_prob)
+        log_cp, log_1mcp = np.log(clutter_prior), np.log1p(-clutter_prior)
+    log_c, log_cd = log_1mpb + log_cp, np.log(clutter_density)
+    log_norm = np.logaddexp(log_pb, log_c)  # P(birth or clutter): no target to pick
+    table = np.array([[log_c + log_cd, log_pb], [log_c - log_norm + log_cd, log_pb - log_norm]])
+    return table, log_1mpb + log_1mcp
 
-    parts = _Particles(N, m0, P0)
-    logw = np.full(N, -np.log(N))
-    next_id = 0
+
+class RBMCDAState(NamedTuple):
+    """The particles, their targets padded into C slots.
+
+    M (N, C, n), P (N, C, n, n): target means and covariances (a dead slot holds finite
+    values that are never read);
+    alive (N, C) bool; ids (N, C) int64 target ids (-1 in a dead slot); tau (N, C) time of
+    each target's last associated measurement; logw (N,) normalised log-weights;
+    next_id: the id the next born target gets; k: the number of steps taken.
+    """
+
+    M: np.ndarray
+    P: np.ndarray
+    alive: np.ndarray
+    ids: np.ndarray
+    tau: np.ndarray
+    logw: np.ndarray
+    next_id: int
+    k: int
+
+
+class RBMCDAReport(NamedTuple):
+    """One step's tracks, ids (m,), means (m, n), covs (m, n, n), and its ESS (before
+    resampling), posterior mean number of targets and whether it resampled."""
+
+    ids: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+    ess: float
+    expected_n_targets: float
+    resampled: bool
+
+
+def initial_state(m0: np.ndarray, P0: np.ndarray, n_particles: int,
+                  capacity: int = 4) -> RBMCDAState:
+    """N particles with no target, equal weights, C = capacity empty slots."""
+    N, C, n = n_particles, capacity, m0.shape[0]
+    return RBMCDAState(np.broadcast_to(m0, (N, C, n)).copy(),
+                       np.broadcast_to(P0, (N, C, n, n)).copy(),
+                       np.zeros((N, C), dtype=bool), np.full((N, C), -1, dtype=np.int64),
+                       np.zeros((N, C)), np.full(N, -np.log(N)), 0, 0)
+
+
+def _grow(s: RBMCDAState, m0, P0) -> RBMCDAState:
+    """Double the number of slots (new slots are dead and hold the prior)."""
+    return s._replace(
+        M=np.concatenate([s.M, np.broadcast_to(m0, s.M.shape)], axis=1),
+        P=np.concatenate([s.P, np.broadcast_to(P0, s.P.shape)], axis=1),
+        alive=np.concatenate([s.alive, np.zeros_like(s.alive)], axis=1),
+        ids=np.concatenate([s.ids, np.full_like(s.ids, -1)], axis=1),
+        tau=np.concatenate([s.tau, np.zeros_like(s.tau)], axis=1))
+
+
+def survival(age, shape: float, scale: float) -> np.ndarray:
+    """S(age) = P(lifetime > age) of the Gamma(shape, scale) lifetime, = Q(shape, age/scale)
+    (regularised upper incomplete gamma; equal to scipy.stats.gamma.sf, at 1/17 the cost)."""
+    return gammaincc(shape, np.asarray(age) / scale)
+
+
+def deaths(alive, tau, t_prev: float, t: float, shape: float, scale: float, u) -> np.ndarray:
+    """Mask (N, C) of the alive targets that die between t_prev and t, given uniforms u
+    (N, C): a target survives iff u < S(t - tau) / S(t_prev - tau), written
+    u S(t_prev - tau) < S(t - tau) so that a target whose survival underflowed to 0 dies."""
+    return alive & ~(u * survival(t_prev - tau, shape, scale) < survival(t - tau, shape, scale))
+
+
+def _event_log_joint(alive, rows, cols, ll, p: RBMCDAParams) -> np.ndarray:
+    """log(prior x likelihood) (N, C + 2) of each particle's events for one measurement:
+    clutter, birth, then the target in slot c (-inf where slot c is dead). ll (K + 1,) holds
+    the log-likelihoods of the K alive targets (at rows, cols) and of the birth prior."""
+    N, C = alive.shape
+    K = rows.size
+    n_alive = np.bincount(rows, minlength=N)
+    log_joint = np.full((N, C + 2), -np.inf)
+    log_joint[:, :2] = p.log_clutter_birth[(n_alive == 0).view(np.int8)]
+    log_joint[:, 1] += ll[K]
+    log_joint[rows, cols + 2] = ll[:K] + (p.log_target - np.log(np.maximum(n_alive, 1)))[rows]
+    return log_joint
+
+
+def _draw(log_joint: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
+    """One event per row of log_joint (N, E), drawn with probability proportional to
+    exp(log_joint) by inverse CDF, and the rows' log-normalisers log sum exp (N,).
+    A row with no possible event (all -inf) gets -inf (its particle weight 0)."""
+    peak = log_joint.max(axis=1)
+    peak[peak == -np.inf] = 0.0
+    cdf = np.cumsum(np.exp(log_joint - peak[:, None]), axis=1)
+    with np.errstate(divide="ignore"):
+        log_norm = peak + np.log(cdf[:, -1])
+    u = rng.random(log_joint.shape[0]) * cdf[:, -1]
+    return np.minimum((cdf < u[:, None]).sum(axis=1), log_joint.shape[1] - 1), log_norm
+
+
+def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) -> RBMCDAState:
+    """Process one measurement y (d,) at time t for all particles (module docstring, step
+    3). Writes into the state's arrays, which the caller owns."""
+    # The Kalman filters in play: the K alive targets, then the birth prior (index K).
+    rows, cols = s.alive.nonzero()
+    K = rows.size
+    m = np.concatenate([s.M[rows, cols], p.m0[None]])
+    P = np.concatenate([s.P[rows, cols], p.P0[None]])
+    v, S, PHt = kalman.innovation(m, P, y, p.model.H, p.model.R)
+    log_joint = _event_log_joint(s.alive, rows, cols, kalman.innovation_loglik(v, S), p)
+    choice, log_pred = _draw(log_joint, rng)
+    if log_pred.max() == -np.inf:
+        raise FusionInputError(
+            f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
+            "and the birth prior, and clutter_prior = 0 rules out clutter: no hypothesis "
+            "explains it")
+    s = s._replace(logw=s.logw + log_pred)
+
+    # one Kalman update for every particle that chose a target or a birth
+    r = np.flatnonzero(choice)
+    if r.size == 0:
+        return s
+    index = np.full(log_joint.shape, K)  # event -> filter; clutter is never looked up
+    index[rows, cols + 2] = np.arange(K)
+    j = index[r, choice[r]]
+    m_new, P_new = kalman.update_innovation(m[j], P[j], v[j], S[j], PHt[j])
+    c = choice[r] - 2
+    born = c < 0
+    if born.any():
+        s, c[born] = _births(s, r[born], p)
+    s.M[r, c], s.P[r, c], s.tau[r, c] = m_new, P_new, t
+    return s
+
+
+def _births(s: RBMCDAState, b: np.ndarray, p: RBMCDAParams):
+    """Give each particle in b a new target with a fresh id in its first free slot (the
+    slots grow if one has none). Returns the state and those slots (b.size,)."""
+    if s.alive[b].all(axis=1).any():
+        s = _grow(s, p.m0, p.P0)
+    c = s.alive[b].argmin(axis=1)
+    s.alive[b, c] = True
+    s.ids[b, c] = s.next_id + np.arange(b.size)
+    return s._replace(next_id=s.next_id + b.size), c
+
+
+def extract_tracks(s: RBMCDAState, w: np.ndarray):
+    """The MAP particle's targets (ids (m,)) with their mixture moments over the particles
+    sharing them: means (m, n), covs (m, n, n). w (N,) normalised weights."""
+    best = int(w.argmax())
+    ids = s.ids[best][s.alive[best]]
+    if ids.size == 0:
+        n = s.M.shape[-1]
+        return ids, np.zeros((0, n)), np.zeros((0, n, n))
+    rows, cols = s.alive.nonzero()
+    # share[u, k]: weight of alive target k in track u's mixture (one per particle at most)
+    share = (s.ids[rows, cols] == ids[:, None]) * w[rows]
+    share /= share.sum(axis=1, keepdims=True)
+    means, covs = mixture_moments(share, s.M[rows, cols], s.P[rows, cols])
+    return ids, means, covs
+
+
+def filter_step(s: RBMCDAState, scan: np.ndarray, p: RBMCDAParams, rng):
+    """One RBMCDA step (module docstring) on the measurements ``scan`` (k, d).
+    Returns (RBMCDAState, RBMCDAReport); the input state is not modified."""
+    t_prev, t = s.k * p.dt, (s.k + 1) * p.dt
+    alive, ids, M, P = s.alive.copy(), s.ids.copy(), s.M.copy(), s.P.copy()
+    if alive.any():
+        dead = deaths(alive, s.tau, t_prev, t, p.lifetime_shape, p.lifetime_scale,
+                      rng.random(alive.shape))
+        alive &= ~dead
+        ids[dead] = -1
+    # predict the survivors; a dead slot keeps its last (finite, never read) moments
+    rows, cols = alive.nonzero()
+    M[rows, cols], P[rows, cols] = kalman.predict(M[rows, cols], P[rows, cols],
+                                                  p.model.A, p.model.Q)
+    s = s._replace(M=M, P=P, alive=alive, ids=ids, tau=s.tau.copy(), k=s.k + 1)
+    for y in scan:
+        s = _associate(s, y, t, p, rng)
+
+    end = end_of_step(s.logw, p.threshold, rng)
+    track_ids, means, covs = extract_tracks(s, end.weights)
+    n_expected = float(end.weights @ s.alive.sum(axis=1))
+    if end.ancestors is not None:
+        a = end.ancestors
+        s = s._replace(M=s.M[a], P=s.P[a], alive=s.alive[a], ids=s.ids[a], tau=s.tau[a])
+    s = s._replace(logw=end.logw)
+    return s, RBMCDAReport(track_ids, means, covs, end.ess, n_expected,
+                           end.ancestors is not None)
+
+
+class RBMCDA:
+    """RBMCDA (module docstring) for an unknown number of targets, one step at a time.
+
+    RBMCDA(model, m0, P0, *, rng, dt, n_particles=20, birth_prob=0.01, lifetime_shape=2.0,
+    lifetime_scale=0.5, clutter_prior=0.05, clutter_density=1/16, resample_threshold=0.25,
+    name=None): model a LinearGaussian with step dt; m0 (n,), P0 (n, n) the prior of a
+    new-born target; dt the step length (s), used for the lifetimes (step k is at time
+    (k + 1) dt); rng a numpy Generator; birth_prob the prior probability that a measurement
+    comes from a new target; lifetime_shape, lifetime_scale: the Gamma lifetime since the
+    last associated measurement; clutter_prior the prior probability that a measurement is
+    clutter given no birth; clutter_density the clutter likelihood 1/V; resample when
+    ESS < resample_threshold * n_particles.
+
+    ``step(scan, time=None)`` takes the measurements (k, d) of one step (k may be 0) and
+    returns an Estimates with the MAP particle's targets (means (m, n), covs (m, n, n),
+    possibly m = 0) and their target ids. An id is assigned once, at the target's birth,
+    and never reused; it is reported at every step at which that target is alive in the
+    MAP particle. Ids persist while the MAP hypothesis keeps the target; a target that
+    dies never returns, and when the MAP particle changes, ids the new one does not share
+    drop out and its own appear. ``time`` is stamped on the Estimates; None stamps the
+    filter's clock (k + 1) dt (the lifetimes always run on that clock). ``name`` is
+    stamped as its node.
+
+    Read-only state: ``particles`` (an RBMCDAState of read-only arrays), ``log_weights``
+    (N,), ``steps``, and of the last step ``ess``, ``expected_n_targets``, ``resampled``.
+    """
+
+    def __init__(self, model: LinearGaussian, m0, P0, *, rng: np.random.Generator,
+                 dt: float, n_particles: int = 20, birth_prob: float = 0.01,
+                 lifetime_shape: float = 2.0, lifetime_scale: float = 0.5,
+                 clutter_prior: float = 0.05, clutter_density: float = 1 / 16,
+                 resample_threshold: float = 0.25, name=None):
+        m0, P0 = kalman.check_prior(model, m0, P0)
+        self._rng = _checks.generator("rng", rng)
+        N = _checks.positive_int("n_particles", n_particles)
+        pb = _checks.probability("birth_prob", birth_prob)
+        cp = _checks.probability("clutter_prior", clutter_prior)
+        if pb == 0.0 and cp == 0.0:
+            # no target can ever be born, and a measurement may not be clutter
+            raise FusionInputError("birth_prob and clutter_prior must not both be 0: "
+                                   "nothing could explain a measurement")
+        table, log_target = event_log_priors(
+            pb, cp, _checks.positive("clutter_density", clutter_density))
+        self.params = RBMCDAParams(
+            model, _checks.read_only(m0), _checks.read_only(P0), _checks.positive("dt", dt),
+            _checks.read_only(table), log_target,
+            _checks.positive("lifetime_shape", lifetime_shape),
+            _checks.positive("lifetime_scale", lifetime_scale),
+            _checks.probability("resample_threshold", resample_threshold) * N)
+        self.name = _checks.node_name(name)
+        self._state = initial_state(m0, P0, N)
+        self._last = RBMCDAReport(np.zeros(0, dtype=np.int64), np.zeros((0, model.n)),
+                                  np.zeros((0, model.n, model.n)), float(N), 0.0, False)
+
+    @property
+    def particles(self) -> RBMCDAState:
+        """The particles (RBMCDAState; its arrays are read-only views)."""
+        return RBMCDAState(*(_checks.read_only(v) if isinstance(v, np.ndarray) else v
+                             for v in self._state))
+
+    @property
+    def log_weights(self) -> np.ndarray:
+        """(N,) normalised log-weights."""
+        return _checks.read_only(self._state.logw)
+
+    @property
+    def steps(self) -> int:
+        """Number of steps taken."""
+        return self._state.k
+
+    @property
+    def ess(self) -> float:
+        """Effective sample size of the last step, before its resampling (N before any)."""
+        return self._last.ess
+
+    @property
+    def expected_n_targets(self) -> float:
+        """Posterior mean number of targets after the last step."""
+        return self._last.expected_n_targets
+
+    @property
+    def resampled(self) -> bool:
+        """Whether the last step resampled."""
+        return self._last.resampled
+
+    def _advance(self, scan: np.ndarray) -> RBMCDAReport:
+        """One step on a checked scan (k, d); the state changes only if it succeeds."""
+        self._state, self._last = filter_step(self._state, scan, self.params, self._rng)
+        return self._last
+
+    def step(self, scan, time=None) -> Estimates:
+        """Predict, draw deaths, associate every measurement of ``scan`` (k, d), report the
+        MAP particle's targets with their ids."""
+        time = _checks.step_time(time)
+        r = self._advance(_checks.scan("scan", scan, self.params.model.d))
+        if time is None:
+            time = self._state.k * self.params.dt
+        return Estimates(r.means, r.covs, r.ids, time, self.name)
+
+
+def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Generator,
+        dt: float, n_particles: int = 20, birth_prob: float = 0.01,
+        lifetime_shape: float = 2.0, lifetime_scale: float = 0.5,
+        clutter_prior: float = 0.05, clutter_density: float = 1 / 16,
+        resample_threshold: float = 0.25) -> RBMCDAOutput:
+    """Run RBMCDA over ``scans`` (sequence of T arrays (k_t, d), k_t may be 0): a loop over
+    ``RBMCDA.step`` (the tracks without the Estimates wrapper). The arguments are those of
+    ``RBMCDA``. Returns an RBMCDAOutput; ``out[t]`` is the tuple of Track(target_id, mean,
+    cov) at step t.
+    """
+    f = RBMCDA(model, m0, P0, rng=rng, dt=dt, n_particles=n_particles, birth_prob=birth_prob,
+               lifetime_shape=lifetime_shape, lifetime_scale=lifetime_scale,
+               clutter_prior=clutter_prior, clutter_density=clutter_density,
+               resample_threshold=resample_threshold)
+    scans = _checks.scans(scans, model.d)
     T = len(scans)
     tracks, ess = [], np.empty(T)
     expected_n, resampled = np.empty(T), np.zeros(T, dtype=bool)
-
-    for k, ys in enumerate(scans):
-        t_prev, t = k * dt, (k + 1) * dt
-        parts.M, parts.P = kalman.predict(parts.M, parts.P, model.A, model.Q)
-
-        if parts.alive.any():
-            # survival ratio S(t - tau) / S(t_prev - tau); logsf avoids 0/0 for old targets
-            log_surv = life.logsf(t - parts.tau) - life.logsf(t_prev - parts.tau)
-            dies = parts.alive & (np.log(rng.random(parts.alive.shape)) >= log_surv)
-            parts.kill(dies)
-
-        for y in ys:
-            n_alive = parts.alive.sum(axis=1)
-            M_upd, P_upd, ll = kalman.update_with_loglik(parts.M, parts.P, y, H, R)
-            m_b, P_b, ll_b = kalman.update_with_loglik(m0, P0, y, H, R)
-            # priors as in the docstring; with no target alive, renormalise birth vs clutter
-            with np.errstate(divide="ignore"):
-                log_norm = np.where(n_alive > 0, 0.0, np.logaddexp(log_pb, log_1mpb + log_cp))
-                log_prior_c = log_1mpb + log_cp - log_norm
-                log_prior_b = log_pb - log_norm
-                log_prior_t = log_1mpb + log_1mcp - np.log(np.maximum(n_alive, 1))
-            log_joint = np.empty((N, parts.alive.shape[1] + 2))
-            log_joint[:, 0] = log_prior_c + log_cd
-            log_joint[:, 1] = log_prior_b + ll_b
-            log_joint[:, 2:] = np.where(parts.alive, ll + log_prior_t[:, None], -np.inf)
-            log_pred = logsumexp(log_joint, axis=1)
-            logw = logw + log_pred
-
-            # draw the association from the optimal importance distribution (inverse CDF)
-            cdf = np.cumsum(np.exp(log_joint - log_pred[:, None]), axis=1)
-            u = rng.random(N) * cdf[:, -1]
-            choice = np.minimum((cdf < u[:, None]).sum(axis=1), log_joint.shape[1] - 1)
-
-            r = np.flatnonzero(choice >= 2)
-            s = choice[r] - 2
-            parts.M[r, s], parts.P[r, s], parts.tau[r, s] = M_upd[r, s], P_upd[r, s], t
-
-            b = np.flatnonzero(choice == 1)
-            if b.size:
-                if parts.alive[b].all(axis=1).any():
-                    parts.grow()
-                s = np.argmin(parts.alive[b], axis=1)  # first free slot
-                parts.M[b, s], parts.P[b, s], parts.tau[b, s] = m_b, P_b, t
-                parts.alive[b, s] = True
-                parts.ids[b, s] = next_id + np.arange(b.size)
-                next_id += b.size
-
-        logw = logw - logsumexp(logw)
-        w = np.exp(logw)
-        tracks.append(_extract(parts, w))
-        ess[k] = 1.0 / np.sum(w * w)
-        expected_n[k] = w @ parts.alive.sum(axis=1)
-        if ess[k] < thr:
-            idx = systematic_resample(logw, rng)
-            parts.take(idx)
-            logw = np.full(N, -np.log(N))
-            resampled[k] = True
+    for k, scan in enumerate(scans):
+        r = f._advance(scan)
+        tracks.append(tuple(Track(int(u), m, P) for u, m, P in zip(r.ids, r.means, r.covs,
+                                                                   strict=True)))
+        ess[k], expected_n[k], resampled[k] = r.ess, r.expected_n_targets, r.resampled
     return RBMCDAOutput(tuple(tracks), ess, expected_n, resampled)

@@ -4,9 +4,14 @@ Weights are kept as logs and normalised with log-sum-exp: w_i = exp(l_i - logsum
 The effective sample size is ESS = 1 / sum_i w_i^2 (between 1 and N).
 Systematic resampling draws one uniform u ~ U[0, 1/N) and takes the particles whose
 cumulative weight intervals contain u + j/N, j = 0..N-1 (low variance, O(N)).
+
+``end_of_step`` is the tail every particle filter step here shares: normalise, ESS, and
+resample when ESS < threshold (then the log-weights restart at -log N).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -19,29 +24,65 @@ def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
     RBPF's run time).
     """
     a = np.asarray(a, dtype=float)
-    peak = np.max(a, axis=axis, keepdims=True)
-    peak = np.where(np.isfinite(peak), peak, 0.0)  # all -inf: the result is -inf
+    peak = a.max(axis=axis, keepdims=True)
+    peak[~np.isfinite(peak)] = 0.0  # all -inf: the result is -inf
     with np.errstate(divide="ignore"):
-        out = np.log(np.sum(np.exp(a - peak), axis=axis, keepdims=True)) + peak
-    return out.reshape(()) if axis is None else np.squeeze(out, axis=axis)
+        out = np.log(np.exp(a - peak).sum(axis=axis, keepdims=True)) + peak
+    return out.reshape(()) if axis is None else out.squeeze(axis=axis)
 
 
 def normalize_log_weights(logw: np.ndarray) -> np.ndarray:
-    """Shift log-weights so that sum(exp(logw)) = 1."""
-    return logw - logsumexp(logw)
+    """Shift log-weights (N,), at least one finite, so that sum(exp(logw)) = 1.
+
+    The peak is taken out first: l - logsumexp(l) would lose log N to rounding when every
+    l_i shares an offset of 1e16 or more (a measurement far from every particle).
+    """
+    shifted = logw - logw.max()
+    return shifted - np.log(np.exp(shifted).sum())
 
 
 def effective_sample_size(logw: np.ndarray) -> float:
     """ESS = 1 / sum w_i^2 for normalised weights w = softmax(logw)."""
     w = np.exp(normalize_log_weights(logw))
-    return float(1.0 / np.sum(w * w))
+    return float(1.0 / (w @ w))
 
 
 def systematic_resample(logw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Indices (N,) of the ancestors chosen by systematic resampling."""
-    N = logw.shape[0]
-    w = np.exp(normalize_log_weights(logw))
+    return _systematic(np.exp(normalize_log_weights(logw)), rng)
+
+
+def _systematic(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Systematic resampling of normalised weights w (N,): ancestor indices (N,)."""
+    N = w.shape[0]
     cdf = np.cumsum(w)
     cdf[-1] = 1.0  # guard against rounding leaving the last interval short of 1
     positions = (rng.random() + np.arange(N)) / N
     return np.searchsorted(cdf, positions, side="right")
+
+
+class StepEnd(NamedTuple):
+    """The end of a particle filter step.
+
+    weights (N,): normalised weights after the step's updates (what its estimate uses);
+    ess: 1 / sum weights^2; ancestors (N,) int, the resampled particles' indices, or None
+    when the particles were not resampled; logw (N,): the log-weights to carry into the next
+    step (log(weights), or -log N after resampling).
+    """
+
+    weights: np.ndarray
+    ess: float
+    ancestors: np.ndarray | None
+    logw: np.ndarray
+
+
+def end_of_step(logw: np.ndarray, threshold: float, rng: np.random.Generator) -> StepEnd:
+    """Normalise log-weights (N,), compute the ESS and resample systematically if
+    ESS < threshold (an absolute particle count). Draws from ``rng`` only when resampling."""
+    logw = normalize_log_weights(logw)
+    w = np.exp(logw)
+    ess = float(1.0 / (w @ w))
+    if ess >= threshold:
+        return StepEnd(w, ess, None, logw)
+    N = w.shape[0]
+    return StepEnd(w, ess, _systematic(w, rng), np.full(N, -np.log(N)))

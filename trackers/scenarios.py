@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion_opt import FusionInputError
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -100,10 +101,14 @@ def _check_shared(cfg) -> None:
     _checks.positive_int("n_steps", cfg.n_steps)
     _checks.positive("q", cfg.q)
     _check_region("region", cfg.region)
-    if cfg.turn_noise_sd < 0:
-        raise ValueError(f"turn_noise_sd must be >= 0, got {cfg.turn_noise_sd}")
-    for i, p in enumerate(cfg.p_detect):
-        _checks.probability(f"p_detect[{i}]", p)
+    _checks.nonnegative("turn_noise_sd", cfg.turn_noise_sd)
+    _checks.boolean("truth_process_noise", cfg.truth_process_noise)
+    p = _checks.finite_array("p_detect", cfg.p_detect, ndim=1)
+    if p.size == 0:
+        raise FusionInputError("p_detect must hold one detection probability per node, "
+                               "got none (no nodes)")
+    for i, p_i in enumerate(cfg.p_detect):
+        _checks.probability(f"p_detect[{i}]", p_i)
     _checks.positive_int("n_particles", cfg.n_particles)
     _checks.probability("clutter_prior", cfg.clutter_prior)
     _checks.positive("clutter_density", cfg.clutter_density)
@@ -114,8 +119,21 @@ def _check_shared(cfg) -> None:
 def _check_region(name, region):
     r = _checks.finite_array(name, region, shape=(2, 2))
     if np.any(r[:, 1] <= r[:, 0]):
-        raise ValueError(f"{name} must be ((xmin, xmax), (ymin, ymax)) with min < max")
+        raise FusionInputError(f"{name} must be ((xmin, xmax), (ymin, ymax)) with min < max")
     return r
+
+
+def _check_windows(name, windows) -> tuple[tuple[float, float, float], ...]:
+    """Turn windows as a tuple of (start, end, rate), finite, start <= end."""
+    w = _checks.finite_array(name, windows)
+    if w.size == 0:
+        return ()
+    if w.ndim != 2 or w.shape[1] != 3:
+        raise FusionInputError(f"{name} must be a sequence of (start, end, rate), got shape "
+                               f"{w.shape}")
+    if np.any(w[:, 1] < w[:, 0]):
+        raise FusionInputError(f"{name} must be (start, end, rate) with start <= end")
+    return tuple(tuple(float(v) for v in row) for row in w)
 
 
 # ----------------------------------------------------------------------------- Table 1
@@ -154,9 +172,7 @@ class Table1Config:
         _check_shared(self)
         _checks.positive("r", self.r)
         _checks.finite_array("x0", self.x0, shape=(4,))
-        w = _checks.finite_array("turn_windows", self.turn_windows).reshape(-1, 3)
-        if np.any(w[:, 1] < w[:, 0]):
-            raise ValueError("turn_windows must be (start, end, rate) with start <= end")
+        _check_windows("turn_windows", self.turn_windows)
         _checks.probability("clutter_fraction", self.clutter_fraction)
 
     def filter_model(self) -> LinearGaussian:
@@ -193,7 +209,7 @@ def simulate_table1(config: Table1Config, rng: np.random.Generator) -> Table1Dat
     H x + N(0, r I2) otherwise. Nodes draw from independent child generators of ``rng``.
     """
     if not isinstance(config, Table1Config):
-        raise ValueError(f"config must be a Table1Config, got {type(config).__name__}")
+        raise FusionInputError(f"config must be a Table1Config, got {type(config).__name__}")
     rng = _checks.generator("rng", rng)
     truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
     times = config.times()
@@ -220,8 +236,9 @@ def simulate_table1(config: Table1Config, rng: np.random.Generator) -> Table1Dat
 
 @dataclass(frozen=True)
 class TargetSpec:
-    """A true target: initial state x0 at its birth time, alive on (birth, death]; turn rate
-    ``turn_rate`` outside the windows and (start, end, rate) + noise inside them."""
+    """A true target: initial state x0 (4,) at its birth time, alive on (birth, death]; turn
+    rate ``turn_rate`` outside the windows and (start, end, rate) + noise inside them.
+    Validated on construction; x0 and the windows are stored as tuples of floats."""
 
     x0: tuple[float, ...]
     birth: float
@@ -229,20 +246,33 @@ class TargetSpec:
     turn_windows: tuple[tuple[float, float, float], ...] = ()
     turn_rate: float = 0.0
 
+    def __post_init__(self) -> None:
+        x0 = _checks.finite_array("x0", self.x0, shape=(4,))
+        object.__setattr__(self, "x0", tuple(float(v) for v in x0))
+        birth = _checks.finite("birth", self.birth)
+        death = _checks.finite("death", self.death)
+        if not death > birth:
+            raise FusionInputError(f"death must be > birth, got birth {birth}, death {death}")
+        object.__setattr__(self, "birth", birth)
+        object.__setattr__(self, "death", death)
+        object.__setattr__(self, "turn_windows", _check_windows("turn_windows",
+                                                               self.turn_windows))
+        object.__setattr__(self, "turn_rate", _checks.finite("turn_rate", self.turn_rate))
+
 
 _T1_RATE = _PI / (2 * 0.51)
 
 
 def _target_spec(i: int, tg) -> TargetSpec:
+    """targets[i] as a TargetSpec (a TOML table or array gives its fields)."""
     if isinstance(tg, TargetSpec):
         return tg
     try:
-        spec = TargetSpec(**tg) if isinstance(tg, Mapping) else TargetSpec(*tg)
+        return TargetSpec(**tg) if isinstance(tg, Mapping) else TargetSpec(*tg)
     except TypeError as err:
-        raise ValueError(f"targets[{i}] is not a valid TargetSpec: {err}") from None
-    windows = tuple(tuple(float(v) for v in w) for w in spec.turn_windows)
-    return TargetSpec(tuple(spec.x0), float(spec.birth), float(spec.death), windows,
-                      float(spec.turn_rate))
+        raise FusionInputError(f"targets[{i}] is not a valid TargetSpec: {err}") from None
+    except FusionInputError as err:
+        raise FusionInputError(f"targets[{i}]: {err}") from None
 
 
 @dataclass(frozen=True)
@@ -279,14 +309,13 @@ class Table2Config:
         _check_shared(self)
         _checks.positive("meas_sd", self.meas_sd)
         # a study's TOML gives targets as tables (dicts) or arrays; store TargetSpecs
+        if isinstance(self.targets, str | bytes | Mapping) or not hasattr(self.targets,
+                                                                          "__iter__"):
+            raise FusionInputError(f"targets must be a sequence of TargetSpec, got "
+                                   f"{type(self.targets).__name__}")
         targets = tuple(_target_spec(i, tg) for i, tg in enumerate(self.targets))
         object.__setattr__(self, "targets", targets)
-        for i, tg in enumerate(self.targets):
-            _checks.finite_array(f"targets[{i}].x0", tg.x0, shape=(4,))
-            if not tg.death > tg.birth:
-                raise ValueError(f"targets[{i}] must have death > birth")
-        if not (np.isfinite(self.clutter_rate) and self.clutter_rate >= 0):
-            raise ValueError(f"clutter_rate must be finite and >= 0, got {self.clutter_rate}")
+        _checks.nonnegative("clutter_rate", self.clutter_rate)
         _checks.probability("birth_prob", self.birth_prob)
         _checks.positive("lifetime_shape", self.lifetime_shape)
         _checks.positive("lifetime_scale", self.lifetime_scale)
@@ -335,7 +364,7 @@ def simulate_table2(config: Table2Config, rng: np.random.Generator) -> Table2Dat
     uniform on the region; a step's measurements are in random order.
     """
     if not isinstance(config, Table2Config):
-        raise ValueError(f"config must be a Table2Config, got {type(config).__name__}")
+        raise FusionInputError(f"config must be a Table2Config, got {type(config).__name__}")
     rng = _checks.generator("rng", rng)
     truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
     dt, T = config.dt, config.n_steps

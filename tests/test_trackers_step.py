@@ -1,0 +1,73 @@
+"""The tracker protocol shared by KalmanFilter, RBPF and RBMCDA: step(scan, time) ->
+Estimates, empty scans, and refusals that leave the tracker unchanged."""
+
+import numpy as np
+import pytest
+
+from fusion_opt import Estimates, FusionInputError
+from trackers import kalman, rbmcda, rbpf, scenarios
+
+
+def make(kind, name=None):
+    cfg = scenarios.Table2Config()
+    model, (m0, P0) = cfg.filter_model(), cfg.prior()
+    rng = np.random.default_rng(5)
+    if kind == "kf":
+        return kalman.KalmanFilter(model, m0, P0, name=name)
+    if kind == "rbpf":
+        return rbpf.RBPF(model, m0, P0, rng=rng, name=name)
+    return rbmcda.RBMCDA(model, m0, P0, rng=rng, dt=cfg.dt, name=name)
+
+
+KINDS = ["kf", "rbpf", "rbmcda"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_empty_scans_in_every_form_step_alike(kind):
+    a, b = make(kind), make(kind)
+    for scan_a, scan_b in (([], np.empty((0, 2))), ([[0.1, 0.2]], np.array([[0.1, 0.2]])),
+                           (np.zeros((0, 2)), [])):
+        ea, eb = a.step(scan_a), b.step(scan_b)
+        assert isinstance(ea, Estimates) and ea.n == 4
+        np.testing.assert_array_equal(ea.means, eb.means)
+        np.testing.assert_array_equal(ea.covs, eb.covs)
+        np.testing.assert_array_equal(ea.ids, eb.ids)
+    assert a.steps == 3
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_time_and_name_are_stamped(kind):
+    f = make(kind, name="node 3")
+    e = f.step([], time=0.5)
+    assert (e.time, e.node) == (0.5, "node 3")
+    e = f.step([])
+    assert e.time == (0.02 if kind == "rbmcda" else None)  # RBMCDA's clock: (k + 1) dt
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize(("scan", "time", "match"), [
+    (None, None, "scan must be an array-like"),
+    ("0.1 0.2", None, "scan must be an array of real numbers"),
+    ([[0.1, 0.2j]], None, "complex"),
+    ([[0.1, np.inf]], None, "non-finite"),
+    (np.zeros((1, 3)), None, r"shape \(k, 2\)"),
+    ([], "1.0", "time must be a real number"),
+    ([], np.nan, "time must be a finite real number"),
+    ([], True, "time must be a real number"),
+])
+def test_refused_step_leaves_the_tracker_unchanged(kind, scan, time, match):
+    f = make(kind)
+    f.step([[0.3, -0.2]])
+    with pytest.raises(FusionInputError, match=match):
+        f.step(scan, time=time)
+    assert f.steps == 1
+    g = make(kind)
+    g.step([[0.3, -0.2]])
+    e_f, e_g = f.step([[0.31, -0.2]]), g.step([[0.31, -0.2]])
+    np.testing.assert_array_equal(e_f.means, e_g.means)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_unhashable_name_is_refused_at_construction(kind):
+    with pytest.raises(FusionInputError, match="name must be hashable"):
+        make(kind, name=["a"])
