@@ -59,7 +59,8 @@ def estimates(config: dict, seed: np.random.SeedSequence):
                             lifetime_shape=sc.lifetime_shape,
                             lifetime_scale=sc.lifetime_scale,
                             clutter_prior=sc.clutter_prior,
-                            clutter_density=sc.clutter_density)
+                            clutter_density=sc.clutter_density,
+                            resample_threshold=sc.resample_threshold)
         out[f"RBMCDA {k}"] = [_stack(step) for step in tracks]
     for proc, neighbours in config["network"]["neighbours"].items():
         out.update(_processing_node(config, sc, proc, neighbours, out))
