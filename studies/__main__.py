@@ -229,8 +229,8 @@ def main(argv=None) -> int:
         return 0
     try:
         (_run if args.command == "run" else _report)(args)
-    except (StoreError, configs.ConfigError, runner.RunError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (StoreError, configs.ConfigError, runner.RunError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)  # OSError: an --out that cannot be written
         return 2
     except KeyboardInterrupt as exc:
         print(f"interrupted{f': {exc}' if str(exc) else ''}", file=sys.stderr)

@@ -160,3 +160,11 @@ def test_report_of_a_benchmark_rebuilds_from_its_meta_json(tmp_path):
     assert main(["report", "backends", "--out", str(tmp_path)]) == 0
     assert (folder / "backends.md").read_text() == table
     assert (folder / "meta.json").read_text() == meta_before
+
+
+def test_an_out_folder_that_cannot_be_made_is_refused_in_one_line(tiny, tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    assert main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "file"),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "file/table1" in err
