@@ -4,6 +4,16 @@
     python -m studies run paper --quick          # Table 1 and Table 2, quick settings
     python -m studies run table1 --runs 200 --workers 2
     python -m studies report table1              # rebuild tables and figures from the store
+
+`run` checks every configuration (and every existing store) before anything runs or is
+created, then runs each study, resuming its stored runs, and writes its report and
+meta.json. `report` rebuilds the tables and figures from what the store holds, with the
+configuration stored there; it writes report.json and leaves meta.json alone.
+
+A study module has `check(config)` and either `run_one(config, index, seed)` ->
+(result, figure) and `report(config, results, out, figure)` (a Monte Carlo study, runs in
+OUT/NAME/runs.sqlite), or `run(config, out, quick=, progress=)` and
+`report(config, out, quick=)` (a single-shot benchmark; its meta.json holds its config).
 """
 
 from __future__ import annotations
@@ -32,10 +42,15 @@ STUDIES = {
     "nnode": "studies.nnode",
 }
 GROUPS = {"paper": ("table1", "table2")}
+STORE, META, REPORT = "runs.sqlite", "meta.json", "report.json"
 
 
 def _module(name: str):
     return importlib.import_module(STUDIES[name])
+
+
+def _monte_carlo(module) -> bool:
+    return hasattr(module, "run_one")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -44,61 +59,97 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("list", help="list the studies and what each does")
     names = sorted(STUDIES) + sorted(GROUPS)
-    for cmd, text in (("run", "run a study (resuming stored runs), then write its report"),
-                      ("report", "rebuild a study's tables and figures from stored runs")):
-        s = sub.add_parser(cmd, help=text)
+    run = sub.add_parser("run", help="run a study (resuming stored runs), then write its "
+                         "report")
+    report = sub.add_parser("report", help="rebuild a study's tables and figures from its "
+                            "store, with the configuration it was run with")
+    for s in (run, report):
         s.add_argument("name", choices=names, help="study, or 'paper' for table1 and table2")
-        s.add_argument("--runs", type=int, help="Monte Carlo runs (default: the config's)")
-        s.add_argument("--seed", type=int, help="root seed; run i uses SeedSequence(seed)"
-                       ".spawn(runs)[i] (default: the config's)")
         s.add_argument("--out", type=Path, default=Path("results"),
                        help="output folder; each study writes to OUT/NAME (default: results)")
-        s.add_argument("--config", type=Path, help="TOML file merged over the defaults")
-        s.add_argument("--quick", action="store_true",
-                       help="the config's [quick] settings: few runs, for a first look")
-        if cmd == "run":
-            s.add_argument("--workers", type=int, default=None,
-                           help="local processes (1 = serial; default: all cores)")
-            s.add_argument("--scheduler", metavar="ADDRESS",
-                           help="run on a Dask cluster at ADDRESS (needs the dask extra)")
-            s.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--runs", type=int, help="Monte Carlo runs (default: the config's)")
+    run.add_argument("--seed", type=int, help="root seed; run i uses SeedSequence(seed)"
+                     ".spawn(runs)[i] (default: the config's)")
+    run.add_argument("--config", type=Path, help="TOML file merged over the defaults")
+    run.add_argument("--quick", action="store_true",
+                     help="the config's [quick] settings: few runs, for a first look")
+    run.add_argument("--workers", type=int, default=None,
+                     help="local processes, >= 1 (1 = serial; default: all cores)")
+    run.add_argument("--scheduler", metavar="ADDRESS",
+                     help="run on a Dask cluster at ADDRESS (needs the dask extra)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
+def _summary_line(module) -> str:
+    """The first paragraph of a module's docstring, on one line."""
+    paragraph = (module.__doc__ or "").strip().split("\n\n")[0]
+    return " ".join(paragraph.split())
+
+
+# -------------------------------------------------------------------------------- run
+
 def _config(name: str, args) -> dict:
-    config = configs.load(name, quick=args.quick, path=args.config)
-    config["name"] = name
-    if args.runs is not None:
-        config["runs"] = args.runs
-    if args.seed is not None:
-        config["seed"] = args.seed
-    return configs.check_runs(config) if "runs" in config else config
+    """The checked configuration of study `name`; ConfigError names the study and field."""
+    module = _module(name)
+    try:
+        config = configs.load(name, quick=args.quick, path=args.config)
+        if args.runs is not None:
+            if "runs" not in config:
+                raise configs.ConfigError("--runs does not apply: this study is one "
+                                          "benchmark, not Monte Carlo runs")
+            config["runs"] = args.runs
+        if args.seed is not None:
+            config["seed"] = args.seed
+        module.check(config)
+    except configs.ConfigError as exc:
+        raise configs.ConfigError(f"{name}: {exc}") from None
+    return config
 
 
-def _run_one_study(name: str, args, run: bool) -> None:
-    module, config = _module(name), _config(name, args)
-    out = args.out / name
+def _run(args) -> None:
+    if args.workers is not None and args.workers < 1:
+        raise configs.ConfigError(f"--workers must be an integer >= 1, got {args.workers}")
+    names = GROUPS.get(args.name, (args.name,))
+    config = {name: _config(name, args) for name in names}
+    for name in names:  # a store that would refuse its config, before anything runs
+        if _monte_carlo(_module(name)):
+            Store(args.out / name / STORE, config[name], write=False).close()
+    for name in names:
+        _run_study(name, config[name], args)
+
+
+def _run_study(name: str, config: dict, args) -> None:
+    module, out = _module(name), args.out / name
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    if not hasattr(module, "run_one"):  # a single-shot study (a benchmark)
-        if run:
-            module.run(config, out, quick=args.quick, progress=not args.quiet)
-        else:
-            module.report(config, out, quick=args.quick)
-    else:
-        store = Store(out / "runs.sqlite", configs.config_hash(config), config)
+    if not _monte_carlo(module):
+        module.run(config, out, quick=args.quick, progress=not args.quiet)
+        meta.write(out / META, study=name, config=config, quick=args.quick,
+                   seed=config.get("seed"), wall_time_s=time.perf_counter() - t0,
+                   command=args.command_line)
+        print(f"{name}: wrote {out}", file=sys.stderr)
+        return
+    store = Store(out / STORE, config)
+    try:
         try:
-            if run:
-                runner.run_all(module.run_one, config, store, workers=_workers(args),
-                               scheduler=args.scheduler, progress=not args.quiet)
-                if hasattr(module, "benchmark"):  # timings, measured once after the runs
-                    module.benchmark(config, out, progress=not args.quiet)
-            module.report(config, store.results(config["runs"]), out)
-        finally:
-            store.close()
-    meta.write(out, study=name, config=config, seed=config.get("seed"),
-               runs=config.get("runs"), wall_time_s=time.perf_counter() - t0,
-               command=" ".join(sys.argv))
+            runner.run_all(module.run_one, config, store, workers=_workers(args),
+                           scheduler=args.scheduler, progress=not args.quiet, label=name)
+            if hasattr(module, "benchmark"):  # timings, measured once after the runs
+                module.benchmark(config, out, progress=not args.quiet)
+            _report_runs(module, store, out)
+        finally:  # an interrupted invocation counts too
+            wall = time.perf_counter() - t0
+            store.add_invocation(wall)
+        meta.write(out / META, study=name, config=config, quick=args.quick,
+                   seed=config["seed"], runs=config["runs"], command=args.command_line,
+                   this_invocation_wall_time_s=wall, **store.totals())
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"{len(store.done())} of {config['runs']} runs of {name} "
+                                f"are stored in {store.path}; run the same command to "
+                                "resume") from None
+    finally:
+        store.close()
     print(f"{name}: wrote {out}", file=sys.stderr)
 
 
@@ -106,24 +157,83 @@ def _workers(args) -> int:
     return args.workers if args.workers is not None else (os.cpu_count() or 1)
 
 
+# ----------------------------------------------------------------------------- report
+
+def _report(args) -> None:
+    """Rebuild every named study's report from its store (all stores opened first, so a
+    study never run is found before anything is written)."""
+    sources = {}
+    try:
+        for name in GROUPS.get(args.name, (args.name,)):
+            sources[name] = _source(name, args.out / name)
+        for name, source in sources.items():
+            _report_one(name, source, args)
+    finally:
+        for source in sources.values():
+            if isinstance(source, Store):
+                source.close()
+
+
+def _report_one(name: str, source, args) -> None:
+    t0, module, out = time.perf_counter(), _module(name), args.out / name
+    if isinstance(source, Store):
+        fields = {"store": str(source.path), "runs_reported": _report_runs(module, source, out)}
+    else:
+        module.report(source["config"], out, quick=source.get("quick", False))
+        fields = {"from": str(out / META)}
+    meta.write(out / REPORT, study=name, command=args.command_line,
+               wall_time_s=time.perf_counter() - t0, **fields)
+    print(f"{name}: rebuilt the report in {out}", file=sys.stderr)
+
+
+def _source(name: str, out: Path):
+    """What study `name` stored in out: its Store, or its meta.json's fields (a study
+    without runs), with a configuration this version can still use."""
+    module = _module(name)
+    if _monte_carlo(module):
+        source = Store(out / STORE)
+        config = source.config
+    else:
+        source = meta.read(out / META)
+        config = source["config"]
+    try:
+        module.check(config)
+    except configs.ConfigError as exc:
+        raise configs.ConfigError(f"{name}: the configuration stored in {out} no longer "
+                                  f"passes: {exc}") from None
+    return source
+
+
+def _report_runs(module, store: Store, out: Path) -> int:
+    """Write the report of a Monte Carlo study from the runs in store; returns how many."""
+    config = store.config
+    results = store.results(config["runs"])
+    if not results:
+        raise StoreError(f"{store.path} holds no finished run yet; run the study first")
+    if len(results) < config["runs"]:
+        print(f"note: {store.path} holds {len(results)} of {config['runs']} runs; the "
+              "report shows those (run the study to finish it)", file=sys.stderr)
+    module.report(config, list(results.values()), out, store.figure(runner.FIGURE_RUN))
+    return len(results)
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
+    args.command_line = " ".join(["python -m studies", *argv])
     if args.command == "list":
         for name in sorted(STUDIES):
-            doc = (_module(name).__doc__ or "").strip().splitlines()
-            print(f"{name:10s} {doc[0] if doc else ''}")
+            print(f"{name:10s} {_summary_line(_module(name))}")
         for group, members in GROUPS.items():
             print(f"{group:10s} runs {' and '.join(members)}")
         return 0
     try:
-        for name in GROUPS.get(args.name, (args.name,)):
-            _run_one_study(name, args, run=args.command == "run")
-    except (StoreError, configs.ConfigError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        (_run if args.command == "run" else _report)(args)
+    except (StoreError, configs.ConfigError, runner.RunError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)  # OSError: an --out that cannot be written
         return 2
-    except KeyboardInterrupt:
-        print("interrupted: finished runs are stored; run the same command to resume",
-              file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"interrupted{f': {exc}' if str(exc) else ''}", file=sys.stderr)
         return 130
     return 0
 

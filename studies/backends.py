@@ -31,11 +31,32 @@ from fusion_opt.fusion import information
 from fusion_opt.scaling import scale
 from fusion_opt.simplex import to_simplex
 
+from . import config as configs
 from . import meta, plotting
 
 COLUMNS = ("mode", "backend", "n", "N", "criterion", "kind", "solves", "first_ms",
            "median_ms", "p90_ms", "solver_own_median_ms", "overhead_median_ms",
            "worst_objective_gap", "worst_optimality_gap", "failures")
+
+
+def check(config: dict) -> None:
+    """Refuse, with a ConfigError naming the field, anything in config this benchmark
+    cannot run: called on the whole merged configuration before anything runs."""
+    lists = {"n": 1, "N": 2, "batch_n": 1}  # list field -> its smallest value
+    counts = {"instances": 1, "repeats": 1, "batch_pairs": 1, "batch_repeats": 1}
+    configs.fields(config, "", ("seed", "criteria", "kinds", "backends", *lists, *counts),
+                   ("batch_check",))
+    configs.integer("seed", config["seed"], low=0)
+    for key, low in lists.items():
+        for i, v in enumerate(configs.items(key, config[key])):
+            configs.integer(f"{key}[{i}]", v, low=low)
+    for key, low in (counts | {"batch_check": 1}).items():
+        if key in config:
+            configs.integer(key, config[key], low=low)
+    for key, options in (("criteria", ("trace", "logdet")),
+                         ("kinds", ("random", "ill-conditioned")), ("backends", REGISTRY)):
+        for i, v in enumerate(configs.items(key, config[key])):
+            configs.choice(f"{key}[{i}]", v, options)
 
 
 def instance(rng: np.random.Generator, N: int, n: int, kind: str) -> np.ndarray:

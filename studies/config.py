@@ -1,5 +1,10 @@
 """Study configurations: TOML defaults per study, a [quick] table of overrides, a user
-file merged on top, and a stable hash that keys the results database."""
+file merged on top, and a stable hash that keys the results database.
+
+Each study module has a `check(config)` that refuses, before anything runs, every field
+it cannot use; the helpers below give those refusals one form, a ConfigError naming the
+field as the user writes it ("fusion.chi_inv must be a number >= 1 ..., got 0.5").
+"""
 
 from __future__ import annotations
 
@@ -7,45 +12,20 @@ import copy
 import dataclasses
 import hashlib
 import json
+import math
 import tomllib
+from collections.abc import Collection, Mapping
 from importlib import resources
 from pathlib import Path
+
+import fusion_opt as fo
 
 
 class ConfigError(ValueError):
     """A study configuration names an unknown field or holds a bad value."""
 
 
-def build(cls, table: dict, section: str):
-    """cls(**table) for a frozen config dataclass, TOML arrays made tuples; an unknown field
-    or a value the dataclass rejects raises ConfigError naming the section."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise ConfigError(f"[{section}] has unknown field(s) {unknown}; known: {sorted(known)}")
-    try:
-        return cls(**_tuples(table))
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"[{section}]: {exc}") from None
-
-
-def _tuples(x):
-    if isinstance(x, dict):
-        return {k: _tuples(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return tuple(_tuples(v) for v in x)
-    return x
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
+# ----------------------------------------------------------------------------- loading
 
 def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict:
     """The configuration of study `name`: defaults, then [quick], then the file at path."""
@@ -57,6 +37,16 @@ def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict
     if path is not None:
         config = _merge(config, _user_file(path, config))
     return config
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
 
 
 def _user_file(path, defaults: dict) -> dict:
@@ -72,17 +62,152 @@ def _user_file(path, defaults: dict) -> dict:
     return user
 
 
-def check_runs(config: dict) -> dict:
-    """runs a positive integer, seed a non-negative integer."""
-    for key, low in (("runs", 1), ("seed", 0)):
-        value = config.get(key)
-        if not isinstance(value, int) or isinstance(value, bool) or value < low:
-            raise ConfigError(f"{key} must be an integer >= {low}, got {value!r}")
-    return config
-
-
 def config_hash(config: dict) -> str:
     """SHA-256 of the canonical JSON of config (the run count is left out, so a study can
     be extended with more runs without losing the ones it has)."""
     keyed = {k: v for k, v in config.items() if k != "runs"}
     return hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------- checking
+
+def fields(table, where: str, required: Collection[str],
+           optional: Collection[str] = ()) -> dict:
+    """table (the section `where` of a configuration; "" for the whole), which must be a
+    table holding every required field and no field outside required and optional."""
+    label = f"[{where}]" if where else "the configuration"
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{label} must be a table, got {table!r}")
+    unknown = sorted(set(table) - set(required) - set(optional))
+    if unknown:
+        raise ConfigError(f"{label} has unknown field(s) {unknown}; known: "
+                          f"{sorted({*required, *optional})}")
+    missing = sorted(set(required) - set(table))
+    if missing:
+        raise ConfigError(f"{label} lacks field(s) {missing}")
+    return table
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _refuse(where: str, kind: str, value, why: str = "", **bounds) -> None:
+    """ConfigError: where must be a <kind> <bounds> (why), got value."""
+    ops = {"low": ">=", "high": "<=", "above": ">"}
+    rule = " and ".join(f"{ops[k]} {v}" for k, v in bounds.items() if v is not None)
+    raise ConfigError(f"{where} must be {kind}{' ' + rule if rule else ''}"
+                      f"{f' ({why})' if why else ''}, got {value!r}")
+
+
+def number(where: str, value, low: float | None = None, high: float | None = None, *,
+           above: float | None = None, why: str = "") -> float:
+    """A finite number in [low, high] and > above (each bound optional)."""
+    ok = _is_number(value) and math.isfinite(value)
+    if not (ok and (low is None or value >= low) and (high is None or value <= high)
+            and (above is None or value > above)):
+        _refuse(where, "a finite number", value, why, low=low, high=high, above=above)
+    return float(value)
+
+
+def integer(where: str, value, low: int | None = None, high: int | None = None) -> int:
+    """An integer (not a bool, not a float) in [low, high]."""
+    ok = isinstance(value, int) and not isinstance(value, bool)
+    if not (ok and (low is None or value >= low) and (high is None or value <= high)):
+        _refuse(where, "an integer", value, low=low, high=high)
+    return value
+
+
+def choice(where: str, value, options: Collection[str]) -> str:
+    if not isinstance(value, str) or value not in options:
+        raise ConfigError(f"{where} must be one of {list(options)}, got {value!r}")
+    return value
+
+
+def items(where: str, value, length: int | None = None) -> list:
+    """A non-empty list (of the given length)."""
+    if not isinstance(value, list | tuple) or not value or (
+            length is not None and len(value) != length):
+        what = f"a list of {length} values" if length else "a non-empty list"
+        raise ConfigError(f"{where} must be {what}, got {value!r}")
+    return list(value)
+
+
+def run_fields(config: dict) -> None:
+    """runs a positive integer, seed a non-negative integer."""
+    integer("runs", config.get("runs"), low=1)
+    integer("seed", config.get("seed"), low=0)
+
+
+def build(cls, table: dict, section: str):
+    """cls(**table) for a frozen config dataclass, TOML arrays made tuples. An unknown
+    field, a value of another type than the field's default, or a value the dataclass
+    rejects raises ConfigError naming the section and field."""
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{section} must be a table, got {table!r}")
+    defaults = {f.name: getattr(cls(), f.name) for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - set(defaults))
+    if unknown:
+        raise ConfigError(f"[{section}] has unknown field(s) {unknown}; known: "
+                          f"{sorted(defaults)}")
+    for key, value in table.items():
+        _like(f"{section}.{key}", value, defaults[key])
+    try:
+        return cls(**_tuples(table))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[{section}] {exc}") from None
+
+
+def _like(where: str, value, default) -> None:
+    """Refuse value unless it has the type and nesting of the field's default value."""
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+    elif isinstance(default, int):
+        integer(where, value)
+    elif isinstance(default, float):
+        number(where, value)
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+    elif dataclasses.is_dataclass(default):
+        _like_dataclass(where, value, default)
+    elif isinstance(default, tuple):
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where} must be a list, got {value!r}")
+        if default:  # the first entry is the template of every entry
+            for i, v in enumerate(value):
+                _like(f"{where}[{i}]", v, default[0])
+
+
+def _like_dataclass(where: str, value, default) -> None:
+    names = [f.name for f in dataclasses.fields(default)]
+    if isinstance(value, Mapping):
+        unknown = sorted(set(value) - set(names))
+        if unknown:
+            raise ConfigError(f"{where} has unknown field(s) {unknown}; known: {names}")
+        pairs = value.items()
+    elif isinstance(value, list | tuple):
+        pairs = zip(names, value, strict=False)
+    else:
+        raise ConfigError(f"{where} must be a table with fields {names}, got {value!r}")
+    for key, v in pairs:
+        _like(f"{where}.{key}", v, getattr(default, key))
+
+
+def _tuples(x):
+    if isinstance(x, dict):
+        return {k: _tuples(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return tuple(_tuples(v) for v in x)
+    return x
+
+
+def backend(where: str, value, nodes: int) -> str:
+    """A weight solver of fusion_opt.BACKENDS able to fuse up to `nodes` estimates."""
+    choice(where, value, fo.BACKENDS)
+    if value == "closed-form" and nodes > 2:
+        raise ConfigError(f"{where} 'closed-form' fuses two estimates only, but this "
+                          f"configuration fuses up to {nodes}; choose another of "
+                          f"{list(fo.BACKENDS)}")
+    return value

@@ -1,4 +1,8 @@
-"""What a study ran on: git commit, package versions, machine; written as meta.json."""
+"""What a study ran on: git commit, package versions, machine.
+
+`run` writes meta.json (the configuration, the command, and the times of every invocation
+of a resumed study); `report` writes report.json beside it and never touches meta.json.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,8 @@ import platform
 import subprocess
 from importlib import metadata
 from pathlib import Path
+
+from .store import StoreError
 
 PACKAGES = ("numpy", "scipy", "cvxpy", "clarabel", "scs", "matplotlib", "fusion-opt")
 
@@ -36,9 +42,23 @@ def machine() -> dict:
             "machine": platform.machine(), "cpu_count": os.cpu_count()}
 
 
-def write(out_dir: Path, **fields) -> Path:
-    """meta.json in out_dir with the given fields plus commit, versions and machine."""
+def write(path: Path, **fields) -> Path:
+    """The JSON file at path with the given fields plus commit, versions and machine."""
     meta = {**fields, "git_commit": git_commit(), "versions": versions(), "machine": machine()}
-    path = Path(out_dir) / "meta.json"
-    path.write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
-    return path
+    Path(path).write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
+    return Path(path)
+
+
+def read(path: Path) -> dict:
+    """The fields of a meta.json written by `write`; StoreError if it is missing or
+    unreadable (a study without a store keeps its configuration there)."""
+    try:
+        meta = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise StoreError(f"{path} does not exist: the study has not been run there (run "
+                         "it first, or give the --out it was run with)") from None
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"{path} is not readable ({exc}); run the study again") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
+        raise StoreError(f"{path} holds no configuration; run the study again")
+    return meta

@@ -33,6 +33,7 @@ import fusion_opt as fo
 from trackers import metrics
 from trackers.models import turn_model
 
+from . import config as configs
 from . import stats
 from .plotting import log_axes, new_figure, save
 
@@ -47,6 +48,98 @@ RULES = {
     "known cross": {"method": "known-cross"},
 }
 OPTIMISED = ("bci", "mbci")
+
+
+# ---------------------------------------------------------------------- configuration
+
+def _probability(where, x):
+    return configs.number(where, x, low=0, high=1)
+
+
+def _growth(where, x):
+    return configs.number(where, x, low=1, why="a covariance growth chi^-1 per missed scan")
+
+
+def _log10_range(where, x):
+    low, high = (configs.number(f"{where}[{i}]", v)
+                 for i, v in enumerate(configs.items(where, x, length=2)))
+    if high < low:
+        raise configs.ConfigError(f"{where} must be [low, high] with low <= high, got {x!r}")
+
+
+STATIC = {  # field of [static] -> its check
+    "n": lambda w, x: configs.integer(w, x, low=1),
+    "N": lambda w, x: configs.integer(w, x, low=2),
+    "p_center": _probability, "spread": lambda w, x: configs.number(w, x, low=0),
+    "p_min": lambda w, x: configs.number(w, x, high=1, above=0),
+    "rho": _probability, "chi_inv_true": _growth, "reported_share": _probability,
+    "chi_inv_assumed": _growth, "max_misses": lambda w, x: configs.integer(w, x, low=0),
+    "base_log10": _log10_range, "draws": lambda w, x: configs.integer(w, x, low=1),
+}
+DYNAMIC = {
+    "N": lambda w, x: [configs.integer(f"{w}[{i}]", v, low=2)
+                       for i, v in enumerate(configs.items(w, x))],
+    "steps": lambda w, x: configs.integer(w, x, low=1),
+    "burn_in": lambda w, x: configs.integer(w, x, low=0),
+    "dt": lambda w, x: configs.number(w, x, above=0),
+    "q": lambda w, x: configs.number(w, x, above=0),
+    "r": lambda w, x: configs.number(w, x, above=0),
+    "p_center": _probability, "spread": lambda w, x: configs.number(w, x, low=0),
+    "p_min": lambda w, x: configs.number(w, x, high=1, above=0), "chi_inv_assumed": _growth,
+}
+
+
+def check(config: dict) -> None:
+    """Refuse, with a ConfigError naming the field, anything in config this study cannot
+    run: called on the whole merged configuration before anything runs. Every value of
+    every sweep is checked as the [static] field it replaces."""
+    configs.fields(config, "", ("runs", "seed", "backend", "static", "sweeps", "dynamic",
+                                "scaling"))
+    configs.run_fields(config)
+    _check_table(config["static"], "static", STATIC)
+    sweeps = config["sweeps"]
+    if not isinstance(sweeps, dict) or "N" not in sweeps:
+        raise configs.ConfigError("[sweeps] must be a table with a sweep over N (the figures "
+                                  f"plot it), got {sweeps!r}")
+    nodes = [config["static"]["N"]]
+    for name, spec in sweeps.items():
+        nodes += _check_sweep(config["static"], name, spec)
+    dyn = _check_table(config["dynamic"], "dynamic", DYNAMIC)
+    if dyn["burn_in"] >= dyn["steps"]:
+        raise configs.ConfigError(f"dynamic.burn_in must be below dynamic.steps "
+                                  f"({dyn['steps']}), got {dyn['burn_in']}")
+    configs.backend("backend", config["backend"], nodes=max(nodes + list(dyn["N"])))
+    sc = configs.fields(config["scaling"], "scaling", ("N", "n", "backends", "repeats"))
+    sizes = {key: [configs.integer(f"scaling.{key}[{i}]", v, low=low) for i, v in
+                   enumerate(configs.items(f"scaling.{key}", sc[key]))]
+             for key, low in (("N", 2), ("n", 1))}
+    for i, b in enumerate(configs.items("scaling.backends", sc["backends"])):
+        configs.backend(f"scaling.backends[{i}]", b, nodes=max(sizes["N"] + [8]))
+    configs.integer("scaling.repeats", sc["repeats"], low=1)
+
+
+def _check_table(table, where: str, rules: dict) -> dict:
+    configs.fields(table, where, rules)
+    for key, rule in rules.items():
+        rule(f"{where}.{key}", table[key])
+    return table
+
+
+def _check_sweep(static: dict, name: str, spec) -> list[int]:
+    """Check one sweep (either form of sweep_spec); returns the node counts it uses."""
+    where = f"sweeps.{name}"
+    if isinstance(spec, dict):
+        configs.fields(spec, where, ("field", "values"), ("fixed",))
+        configs.choice(f"{where}.field", spec["field"], STATIC)
+        _check_table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
+        where += ".values"
+    elif name not in STATIC:
+        raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
+                                  f"{list(STATIC)}); give a table {{field, values, fixed}}")
+    field, values, fixed = sweep_spec(name, spec)
+    for i, v in enumerate(configs.items(where, values)):
+        STATIC[field](f"{where}[{i}]", v)
+    return [(static | fixed | {field: v})["N"] for v in values]
 
 
 # ------------------------------------------------------------------------ static case
@@ -219,9 +312,10 @@ def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
 
 # ------------------------------------------------------------------------------ runs
 
-def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
-    """Every static sweep point and every dynamic N for one seed; one child seed per sweep
-    (common random numbers across a sweep's values)."""
+def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dict, None]:
+    """(every static sweep point and every dynamic N for one seed, no figure data: the
+    figures draw the summaries); one child seed per sweep (common random numbers across a
+    sweep's values)."""
     sweeps, dyn = config["sweeps"], config["dynamic"]
     children = seed.spawn(len(sweeps) + 1)
     static = {}
@@ -233,7 +327,7 @@ def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
     dyn_seeds = children[-1].spawn(len(dyn["N"]))
     dynamic = {str(N): dynamic_scores(dyn, N, np.random.default_rng(ss), config["backend"])
                for N, ss in zip(dyn["N"], dyn_seeds, strict=True)}
-    return {"static": static, "dynamic": dynamic}
+    return {"static": static, "dynamic": dynamic}, None
 
 
 def sweep_spec(name: str, spec) -> tuple[str, list, dict]:
@@ -289,13 +383,15 @@ def slope(xs, ys) -> float:
 
 # ---------------------------------------------------------------------------- report
 
-def report(config: dict, results: list[dict], out: Path) -> None:
-    """nnode.md (a table per sweep, dynamic, scaling) and the figures."""
+def report(config: dict, results: list[dict], out: Path, figure: None) -> None:
+    """nnode.md (a table per sweep, dynamic, scaling), its tables as CSV files and the
+    figures (drawn from the summaries: the runs return no figure data, so figure is None)."""
     out = Path(out)
     lines = [f"# N-node fusion study ({len(results)} runs, seed {config['seed']}, backend "
              f"{config['backend']})", "", "Mean [95% interval] over runs. MSE of the fused "
              "estimate over error draws; ANEES over draws (band for the mean of chi2(n)); "
-             "consistent: share of runs with P - K S K^T PSD (exact).", ""]
+             "consistent: share of runs with P - K S K^T PSD (exact). "
+             + stats.INTERVAL_NOTE, ""]
     n, draws = config["static"]["n"], config["static"]["draws"]
     band = metrics.anees_bounds(n, draws)
     for field in config["sweeps"]:
@@ -303,7 +399,44 @@ def report(config: dict, results: list[dict], out: Path) -> None:
     lines += _dynamic_table(config, results)
     lines += _scaling_table(out)
     (out / "nnode.md").write_text("\n".join(lines) + "\n")
+    _csv_tables(config, results, out)
     _figures(config, results, out, band)
+
+
+def _csv_tables(config, results, out: Path) -> None:
+    """The tables of nnode.md as CSV, one line per (value, rule): nnode_sweep_NAME.csv and
+    nnode_sweep_NAME_paired.csv per sweep, nnode_dynamic.csv, nnode_scaling.csv."""
+    def cells(path, rule, keys):
+        return {f"{k}_{s}": v for k in keys
+                for s, v in zip(("mean", "low", "high"), _summary(results, path, rule, k),
+                                strict=True)}
+
+    for name, spec in config["sweeps"].items():
+        field = sweep_spec(name, spec)[0]
+        values = list(results[0]["static"][name])
+        stats.write_rows(out / f"nnode_sweep_{name}.csv", [
+            {field: v, "rule": rule, **cells(("static", name, v), rule,
+                                             ("mse", "anees", "consistent"))}
+            for v in values for rule in RULES])
+        stats.write_rows(out / f"nnode_sweep_{name}_paired.csv", [
+            {field: v, "criterion": crit, **_mbci_minus_bci(results, name, v, crit)}
+            for v in values for crit in ("trace", "logdet")])
+    stats.write_rows(out / "nnode_dynamic.csv", [
+        {"N": N, "rule": rule, **cells(("dynamic", N), rule, ("mse", "anees", "time"))}
+        for N in results[0]["dynamic"] for rule in RULES])
+    sc = _scaling(out)
+    if sc is not None:
+        stats.write_rows(out / "nnode_scaling.csv", [
+            {"axis": axis, "backend": b, "size": k, "median_s": t,
+             "loglog_slope": slope([float(k) for k in times], list(times.values()))}
+            for axis in ("vs_N", "vs_n") for b, times in sc[axis].items()
+            for k, t in times.items()])
+
+
+def _mbci_minus_bci(results, name, v, crit) -> dict:
+    """MBCI minus BCI (MSE, criterion crit) at value v of sweep name, paired over runs."""
+    return stats.paired(*([r["static"][name][v][f"{rule} {crit}"]["mse"] for r in results]
+                          for rule in ("MBCI", "BCI")))
 
 
 def _summary(results, path, rule, key):
@@ -341,8 +474,7 @@ def _sweep_tables(results, name, spec, band) -> list[str]:
     for v in values:
         cells = []
         for crit in ("trace", "logdet"):
-            d = stats.paired(*([r["static"][name][v][f"{rule} {crit}"]["mse"] for r in results]
-                               for rule in ("MBCI", "BCI")))
+            d = _mbci_minus_bci(results, name, v, crit)
             cells += [stats.fmt(d["mean_diff"], d["low"], d["high"], 3),
                       f"{d['share_better']:.2f}"]
         lines.append(f"| {v} | " + " | ".join(cells) + " |")

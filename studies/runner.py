@@ -2,74 +2,191 @@
 
 Run i gets SeedSequence(seed).spawn(runs)[i], whose stream depends only on (seed, i), so a
 run's result is the same whichever executor ran it, in whatever order: serially
-(workers=1), in a local process pool, or on a Dask cluster (scheduler address). Each result
-is committed to the SQLite store as it arrives; an interrupted study resumes where it
-stopped, with no run lost or repeated.
+(workers=1), in a local process pool, or on a Dask cluster (scheduler address). A study's
+`run_one(config, index, seed)` returns (result, figure): its scores as JSON data, and the
+data its report's figures draw for run FIGURE_RUN (None for every other run). Each
+finished run is committed to the store as it arrives, so an interrupted study resumes
+where it stopped, with no run lost or repeated.
+
+Ctrl-C (SIGINT) stops at once: the serial runner is interrupted inside its run; pool
+workers ignore SIGINT and are terminated without waiting for their runs. Runs that have
+finished by then, and arrived, are stored before KeyboardInterrupt goes on to the caller.
 """
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
+import queue
+import signal
 import sys
+import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 from tqdm import tqdm
 
 from .store import Store
 
+FIGURE_RUN = 0  # the run whose figure data the report draws
+
+
+class RunError(RuntimeError):
+    """A run raised an exception; names the run and the exception."""
+
 
 def seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
     return np.random.SeedSequence(seed).spawn(runs)
 
 
+def timed_run(run_one: Callable, config: dict, index: int, seed) -> tuple:
+    """(index, result, figure, seconds) of one run (module level, so executors pickle it)."""
+    t0 = time.perf_counter()
+    try:
+        result, figure = run_one(config, index, seed)
+    except Exception as exc:  # noqa: BLE001 (reported with the run that raised it)
+        raise RunError(f"run {index} failed: {type(exc).__name__}: {exc}") from None
+    return index, result, figure, time.perf_counter() - t0
+
+
 def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
-            scheduler: str | None = None, progress: bool = True) -> int:
+            scheduler: str | None = None, progress: bool = True, label: str = "study") -> int:
     """Run every run of config["runs"] not yet in store; returns how many ran now."""
-    runs, todo = config["runs"], []
-    done = store.done()
+    runs, done = config["runs"], store.done()
     todo = [i for i in range(runs) if i not in done]
     all_seeds = seeds(config["seed"], runs)
+    jobs = [(i, all_seeds[i]) for i in todo]
     bar = tqdm(total=runs, initial=runs - len(todo), unit="run", disable=not progress,
-               file=sys.stderr, desc=config.get("name", "study"))
+               file=sys.stderr, desc=label)
+    executor = _executor(workers, scheduler) if jobs else _Serial()
     try:
-        for index, result in _execute(run_one, config, [(i, all_seeds[i]) for i in todo],
-                                      workers, scheduler):
-            store.put(index, result)
+        for finished in executor.results(run_one, config, jobs):
+            with _sigint_deferred():  # a run that has arrived is stored whole
+                store.put(*finished)
             bar.update()
+    except (KeyboardInterrupt, RunError):  # keep what has finished, then stop
+        with _sigint_ignored():
+            for finished in executor.finished():
+                store.put(*finished)
+            executor.close()
+        raise
     finally:
+        executor.close()
         bar.close()
     return len(todo)
 
 
-def _execute(run_one, config, jobs, workers, scheduler) -> Iterator[tuple[int, dict]]:
-    if not jobs:
-        return
-    if scheduler:
-        yield from _dask(run_one, config, jobs, scheduler)
-    elif workers <= 1:
-        for i, ss in jobs:
-            yield i, run_one(config, i, ss)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(run_one, config, i, ss): i for i, ss in jobs}
-            try:
-                for fut in as_completed(futures):
-                    yield futures[fut], fut.result()
-            except BaseException:
-                for fut in futures:
-                    fut.cancel()
-                raise
-
-
-def _dask(run_one, config, jobs, scheduler) -> Iterator[tuple[int, dict]]:
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold a SIGINT that arrives inside the block and raise it when the block ends."""
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
     try:
-        from dask.distributed import Client
-        from dask.distributed import as_completed as dask_completed
-    except ImportError:
-        msg = "--scheduler needs dask.distributed: pip install 'fusion-opt[dask]'"
-        raise SystemExit(msg) from None
-    with Client(scheduler) as client:
-        futures = {client.submit(run_one, config, i, ss, pure=False): i for i, ss in jobs}
-        for fut in dask_completed(futures):
-            yield futures[fut], fut.result()
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _executor(workers: int, scheduler: str | None):
+    if scheduler:
+        return _Dask(scheduler)
+    return _Serial() if workers <= 1 else _Pool(workers)
+
+
+class _Serial:
+    """Runs in this process, one after the other; Ctrl-C interrupts the run in progress."""
+
+    def results(self, run_one, config, jobs) -> Iterator[tuple]:
+        for i, ss in jobs:
+            yield timed_run(run_one, config, i, ss)
+
+    def finished(self) -> list[tuple]:
+        return []
+
+    def close(self) -> None:
+        pass
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class _Pool:
+    """A local process pool. Workers ignore SIGINT (a terminal's Ctrl-C reaches the whole
+    process group): the main process decides, and terminates them."""
+
+    def __init__(self, workers: int):
+        self._pool = multiprocessing.Pool(workers, initializer=_ignore_sigint)
+        self._arrived: queue.SimpleQueue = queue.SimpleQueue()
+
+    def results(self, run_one, config, jobs) -> Iterator[tuple]:
+        for i, ss in jobs:
+            self._pool.apply_async(timed_run, (run_one, config, i, ss),
+                                   callback=self._arrived.put,
+                                   error_callback=self._arrived.put)
+        for _ in jobs:
+            item = self._next()
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+
+    def _next(self):
+        while True:  # a short timeout keeps the wait responsive to Ctrl-C
+            with contextlib.suppress(queue.Empty):
+                return self._arrived.get(timeout=0.1)
+
+    def finished(self) -> list[tuple]:
+        items = []
+        while not self._arrived.empty():
+            item = self._arrived.get()
+            if not isinstance(item, BaseException):
+                items.append(item)
+        return items
+
+    def close(self) -> None:
+        self._pool.terminate()
+        self._pool.join()
+
+
+class _Dask:
+    """A dask.distributed cluster at `scheduler`."""
+
+    def __init__(self, scheduler: str):
+        try:
+            from dask.distributed import Client
+        except ImportError:
+            msg = "--scheduler needs dask.distributed: pip install 'fusion-opt[dask]'"
+            raise SystemExit(msg) from None
+        self._client = Client(scheduler)
+        self._futures: list = []
+        self._yielded: set[int] = set()
+
+    def results(self, run_one, config, jobs) -> Iterator[tuple]:
+        from dask.distributed import as_completed
+
+        self._futures = [self._client.submit(timed_run, run_one, config, i, ss, pure=False)
+                         for i, ss in jobs]
+        for fut in as_completed(self._futures):
+            item = fut.result()
+            self._yielded.add(item[0])
+            yield item
+
+    def finished(self) -> list[tuple]:
+        done = [f.result() for f in self._futures if f.status == "finished"]
+        return [item for item in done if item[0] not in self._yielded]
+
+    def close(self) -> None:
+        if self._client.status != "closed":
+            self._client.cancel(self._futures)
+            self._client.close()

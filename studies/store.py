@@ -1,62 +1,221 @@
 """SQLite store of a study's finished runs: one row per run, committed as it finishes.
 
-The database is keyed by the hash of the configuration (and seed) that produced it: opening
-it with another configuration is refused, never mixed. A damaged file is reported as such.
+The store holds the configuration the study runs with (so `report` needs no flags) and,
+per run, its result, the figure data of the run the figures show, and its compute time.
+Every row carries a SHA-256 checksum of its content; opening a store verifies every row
+and refuses one that does not verify, with one line. Only a missing file is a new store:
+an empty, truncated or foreign file is refused, never read as new. A store of another
+configuration is refused too, unless it holds no runs (then the new configuration
+replaces the old one, so a failed first attempt never blocks the corrected one).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import sqlite3
 from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
+
+from .config import config_hash
+
+SCHEMA = "fusion-opt studies store 2"
+_TABLES = (
+    "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL, checksum TEXT NOT NULL)",
+    "CREATE TABLE runs (idx INTEGER PRIMARY KEY, result TEXT NOT NULL, figure TEXT, "
+    "seconds REAL NOT NULL, checksum TEXT NOT NULL)",
+)
 
 
 class StoreError(RuntimeError):
-    """The results database belongs to another configuration or is damaged."""
+    """The store is missing, damaged, or belongs to another configuration."""
+
+
+def _checksum(*fields) -> str:
+    return hashlib.sha256(json.dumps(fields).encode()).hexdigest()
+
+
+def _json(value) -> str:
+    """JSON text of value; numpy arrays and scalars are written as lists and numbers."""
+    return json.dumps(value, default=_plain)
+
+
+def _plain(obj):
+    if isinstance(obj, np.ndarray | np.generic):
+        return obj.tolist()
+    raise TypeError(f"a study result must be JSON data, got a {type(obj).__name__}")
 
 
 class Store:
-    """Runs of one configuration in `path`: put(index, result) commits at once."""
+    """The verified store at `path`.
 
-    def __init__(self, path: Path, config_hash: str, config: dict):
+    Store(path) reads an existing store (StoreError if there is none). Store(path, config)
+    opens it to run `config`: a missing file becomes a new store; an existing one must
+    hold this configuration (up to the run count, which it takes from config) or no runs.
+    With write=False nothing is created or changed: it only checks that running config
+    would be accepted.
+    """
+
+    def __init__(self, path: Path, config: dict | None = None, *, write: bool = True):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = None
+        if not self.path.exists():
+            if config is None:
+                raise StoreError(f"{self.path} does not exist: the study has not been run "
+                                 "there (run it first, or give the --out it was run with)")
+            if write:
+                self._create(config)
+            return
         try:
-            self._db = sqlite3.connect(self.path)
-            self._db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT)")
-            self._db.execute(
-                "CREATE TABLE IF NOT EXISTS runs (idx INTEGER PRIMARY KEY, result TEXT NOT NULL)")
-            self._claim(config_hash, config)
-        except sqlite3.DatabaseError as exc:
-            raise StoreError(f"{self.path} is not a readable study database ({exc}); "
-                             "move it away or choose another --out") from None
+            self._guard(self._open, write and config is not None)
+            self._guard(self._verify)
+            if config is not None:
+                self._guard(self._claim, config, write)
+        except StoreError:
+            self.close()
+            raise
 
-    def _claim(self, config_hash: str, config: dict) -> None:
-        row = self._db.execute("SELECT value FROM meta WHERE key = 'config_hash'").fetchone()
-        if row is None:
+    # -- opening -------------------------------------------------------------------------
+
+    def _guard(self, fn, *args):
+        """fn(*args), with every SQLite error turned into one line naming the file."""
+        try:
+            return fn(*args)
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{self.path} is not a usable study store (SQLite: {exc}); move "
+                             "it away or choose another --out") from None
+
+    def _open(self, writable: bool) -> None:
+        mode = "rw" if writable else "ro"  # never creates a file
+        self._db = sqlite3.connect(f"file:{quote(str(self.path.resolve()))}?mode={mode}",
+                                   uri=True)
+
+    def _create(self, config: dict) -> None:
+        """Build the new store beside path and move it there whole: an interrupted
+        creation leaves no half-made store to be refused later."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        new = self.path.with_name(self.path.name + ".new")
+        new.unlink(missing_ok=True)
+        self._db = sqlite3.connect(new)
+        with self._db:
+            for sql in _TABLES:
+                self._db.execute(sql)
+            self._set("schema", SCHEMA)
+            self._set("config", config)
+            self._set("wall_time_s", 0.0)
+            self._set("invocations", 0)
+        self.close()
+        os.replace(new, self.path)
+        self._open(writable=True)
+        self.config = config
+
+    def _refuse(self, what: str):
+        raise StoreError(f"{self.path}: {what}; move it away or choose another --out")
+
+    def _verify(self) -> None:
+        """The file must be a store of this schema, and every row match its checksum."""
+        tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master")}
+        if not {"meta", "runs"} <= tables:
+            self._refuse("is empty or not a study store (no meta and runs tables)")
+        schema = self._db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
+        if schema is None or schema[0] != json.dumps(SCHEMA):
+            self._refuse(f"was not written by this version of the studies (schema "
+                         f"{schema and schema[0]}, expected {SCHEMA!r})")
+        meta = {}
+        for key, value, checksum in self._db.execute("SELECT key, value, checksum FROM meta"):
+            if _checksum("meta", key, value) != checksum:
+                self._refuse(f"its {key!r} record does not match its checksum (the store was "
+                             "changed or damaged)")
+            meta[key] = value
+        for key in ("config", "wall_time_s", "invocations"):
+            if key not in meta:
+                self._refuse(f"lacks its {key!r} record")
+        for idx, result, figure, seconds, checksum in self._db.execute(
+                "SELECT idx, result, figure, seconds, checksum FROM runs"):
+            if _checksum("run", idx, result, figure, seconds) != checksum:
+                self._refuse(f"run {idx} does not match its checksum (the store was changed "
+                             "or damaged)")
+        self.config = json.loads(meta["config"])
+
+    def _claim(self, config: dict, write: bool) -> None:
+        """Accept config if it is the stored one up to the run count, or the store is
+        empty; with write, record it (the stored run count becomes config's)."""
+        theirs, ours = config_hash(self.config), config_hash(config)
+        if theirs != ours and self.done():
+            self._refuse(f"holds {len(self.done())} run(s) of another configuration (hash "
+                         f"{theirs[:12]}, this one is {ours[:12]})")
+        if write and config != self.config:
             with self._db:
-                self._db.execute("INSERT INTO meta VALUES ('config_hash', ?)", (config_hash,))
-                self._db.execute("INSERT INTO meta VALUES ('config', ?)",
-                                 (json.dumps(config, sort_keys=True),))
-        elif row[0] != config_hash:
-            raise StoreError(
-                f"{self.path} holds runs of another configuration (hash {row[0][:12]}, this "
-                f"one is {config_hash[:12]}); use another --out or delete the file")
+                self._set("config", config)
+            self.config = config
+
+    # -- rows ----------------------------------------------------------------------------
+
+    def _set(self, key: str, value) -> None:
+        text = _json(value)
+        self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?, ?)",
+                         (key, text, _checksum("meta", key, text)))
+
+    def _get(self, key: str):
+        row = self._guard(lambda: self._db.execute(
+            "SELECT value FROM meta WHERE key = ?", (key,)).fetchone())
+        return json.loads(row[0])
 
     def done(self) -> set[int]:
-        return {r[0] for r in self._db.execute("SELECT idx FROM runs")}
+        """Indices of the stored runs."""
+        if self._db is None:
+            return set()
+        return self._guard(lambda: {r[0] for r in self._db.execute("SELECT idx FROM runs")})
 
-    def put(self, index: int, result: dict) -> None:
-        with self._db:
-            self._db.execute("INSERT INTO runs VALUES (?, ?)", (index, json.dumps(result)))
+    def put(self, index: int, result: dict, figure, seconds: float) -> None:
+        """Commit one finished run: its result, its figure data (or None), its time (s)."""
+        result_text = _json(result)
+        figure_text = None if figure is None else _json(figure)
+        row = (index, result_text, figure_text, float(seconds))
 
-    def results(self, runs: int) -> list[dict]:
-        """Results of runs 0..runs-1 in order (all must be stored)."""
-        rows = dict(self._db.execute("SELECT idx, result FROM runs WHERE idx < ?", (runs,)))
-        missing = [i for i in range(runs) if i not in rows]
-        if missing:
-            raise StoreError(f"{self.path} lacks runs {missing[:5]}...; run the study first")
-        return [json.loads(rows[i]) for i in range(runs)]
+        def insert():
+            with self._db:
+                self._db.execute("INSERT INTO runs VALUES (?, ?, ?, ?, ?)",
+                                 (*row, _checksum("run", *row)))
+        self._guard(insert)
+
+    def results(self, runs: int) -> dict[int, dict]:
+        """{index: result} of the stored runs with index < runs, in index order."""
+        rows = self._guard(lambda: self._db.execute(
+            "SELECT idx, result FROM runs WHERE idx < ? ORDER BY idx", (runs,)).fetchall())
+        return {idx: json.loads(text) for idx, text in rows}
+
+    def figure(self, index: int):
+        """The figure data stored with run `index`, or None."""
+        row = self._guard(lambda: self._db.execute(
+            "SELECT figure FROM runs WHERE idx = ?", (index,)).fetchone())
+        return None if row is None or row[0] is None else json.loads(row[0])
+
+    def run_seconds(self) -> float:
+        """Compute time summed over every stored run (s), whichever invocation ran it."""
+        return self._guard(lambda: self._db.execute(
+            "SELECT COALESCE(SUM(seconds), 0) FROM runs").fetchone()[0])
+
+    def add_invocation(self, wall_seconds: float) -> None:
+        """Count one `run` invocation and add its wall time."""
+        wall, count = self._get("wall_time_s"), self._get("invocations")
+
+        def update():
+            with self._db:
+                self._set("wall_time_s", wall + wall_seconds)
+                self._set("invocations", count + 1)
+        self._guard(update)
+
+    def totals(self) -> dict:
+        """Wall time and count of every `run` invocation, and the runs' compute time."""
+        return {"wall_time_s": self._get("wall_time_s"),
+                "invocations": self._get("invocations"),
+                "run_compute_time_s": self.run_seconds()}
 
     def close(self) -> None:
-        self._db.close()
+        if self._db is not None:
+            self._db.close()
+            self._db = None

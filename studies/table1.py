@@ -4,7 +4,8 @@ Each run simulates the scenario (trackers.scenarios.simulate_table1), runs the K
 and the RBPF at nodes a and b, fuses the two RBPF estimates at every step with CI (trace),
 modified CI (trace, p_D of each node, chi^-1 = 1 + dt), naive fusion and BCI (log-det), and
 scores each with the full-state MSE and MNCM (the paper's columns, DESIGN §3), the position
-ones, and ANEES.
+ones, and ANEES. Run 0 also returns what the figures draw of it (`figure_data`), which the
+store keeps beside its scores, so `report` draws the figures without simulating again.
 """
 
 from __future__ import annotations
@@ -20,16 +21,38 @@ from trackers.scenarios import Table1Config, simulate_table1
 from . import config as configs
 from . import stats
 from .plotting import new_figure, save
+from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
 PAPER = {"KF a": (1.447, None), "KF b": (1.613, None), "RBPF a": (0.141, 0.0632),
          "RBPF b": (0.161, 0.0666), "CI": (0.141, 0.0613), "modified CI": (0.109, 0.0592)}
 ROWS = ("KF a", "KF b", "RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet")
+PATH_ROWS = ("RBPF a", "RBPF b", "modified CI")
+COVNORM_ROWS = ("RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet")
 COLUMNS = ("mse_full", "mncm_full", "mse_pos", "mncm_pos", "anees")
 
 
 def scenario(config: dict) -> Table1Config:
     return configs.build(Table1Config, config["scenario"], "scenario")
+
+
+def check(config: dict) -> None:
+    """Refuse, with a ConfigError naming the field, anything in config this study cannot
+    run: called on the whole merged configuration before anything runs."""
+    configs.fields(config, "", ("runs", "seed", "backend", "scenario", "fusion"))
+    configs.run_fields(config)
+    configs.backend("backend", config["backend"], nodes=2)
+    if len(scenario(config).p_detect) != 2:
+        raise configs.ConfigError("scenario.p_detect must hold 2 detection probabilities "
+                                  f"(nodes a and b), got {config['scenario']['p_detect']!r}")
+    fusion = configs.fields(config["fusion"], "fusion", ("chi_inv", "window"))
+    configs.number("fusion.chi_inv", fusion["chi_inv"], low=1,
+                   why="the paper's chi^-1, the covariance growth over a missed detection")
+    start, end = (configs.number(f"fusion.window[{i}]", t) for i, t in
+                  enumerate(configs.items("fusion.window", fusion["window"], length=2)))
+    if end < start:
+        raise configs.ConfigError(f"fusion.window must be [start, end] with start <= end, "
+                                  f"got {fusion['window']!r}")
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):
@@ -68,10 +91,24 @@ def _fuse_series(means, covs, backend, method, criterion="trace", **args):
     return r.mean, r.cov
 
 
-def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
-    """Scores of every row for one run (a pure function of config and seed)."""
+def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dict, dict]:
+    """(scores of every row, figure data or None) of one run (a pure function of config
+    and seed); the figure data is run FIGURE_RUN's."""
     data, est = estimates(config, seed)
-    return {row: _scores(*est[row], data.truth) for row in ROWS}
+    figure = figure_data(data, est) if index == FIGURE_RUN else None
+    return {row: _scores(*est[row], data.truth) for row in ROWS}, figure
+
+
+def figure_data(data, est) -> dict:
+    """What the figures draw of one run: positions of the truth, of each node's target
+    measurements and clutter, of the PATH_ROWS estimates, and the covariance 2-norm of
+    the COVNORM_ROWS over time (arrays; read back from the store as lists)."""
+    return {"times": data.times, "truth": data.truth[:, :2],
+            "nodes": [{"target": node.values[node.origin >= 0],
+                       "clutter": node.values[node.origin < 0]} for node in data.nodes],
+            "paths": {row: est[row][0][:, :2] for row in PATH_ROWS},
+            "covnorm": {row: np.linalg.norm(est[row][1], 2, axis=(1, 2))
+                        for row in COVNORM_ROWS}}
 
 
 def _scores(means, covs, truth) -> dict:
@@ -84,19 +121,30 @@ def _scores(means, covs, truth) -> dict:
 
 # ------------------------------------------------------------------------------ report
 
-def report(config: dict, results: list[dict], out: Path) -> None:
-    """table1.md, table1.csv and the figures, from the stored runs."""
+def report(config: dict, results: list[dict], out: Path, figure: dict | None) -> None:
+    """table1.md, its tables as table1.csv and table1_paired.csv, and the figures of run
+    FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, ROWS, COLUMNS)
     stats.write_csv(out / "table1.csv", rows, COLUMNS, PAPER, ("paper_mse", "paper_mncm"))
+    stats.write_rows(out / "table1_paired.csv",
+                     [{"measure": col, **p} for col, p in _paired(results).items()])
     (out / "table1.md").write_text(_markdown(config, rows, results))
-    _figures(config, out)
+    if figure is not None:
+        _figures(config, figure, out)
+
+
+def _paired(results) -> dict:
+    """Modified CI minus CI, paired over the runs, for the MSE and MNCM columns."""
+    return {col: stats.paired([r["modified CI"][col] for r in results],
+                              [r["CI"][col] for r in results]) for col in COLUMNS[:4]}
 
 
 def _markdown(config, rows, results) -> str:
     n = len(results)
     lines = [f"# Table 1 ({n} runs, seed {config['seed']}, backend {config['backend']})", "",
              "Mean and 95% interval over runs. MSE: mean over time of the squared error norm; "
-             "MNCM: mean spectral norm of the covariance; full state and position block.", "",
+             "MNCM: mean spectral norm of the covariance; full state and position block. "
+             + stats.INTERVAL_NOTE, "",
              "| row | MSE full | paper MSE | MNCM full | paper MNCM | MSE pos | MNCM pos "
              "| ANEES (4-dof) |", "|---|---|---|---|---|---|---|---|"]
     for row, cols in rows.items():
@@ -107,52 +155,51 @@ def _markdown(config, rows, results) -> str:
     lines += ["", "Paired comparison, modified CI minus CI (negative: modified CI better):", "",
               "| measure | mean difference [95%] | share of runs where modified CI is lower |",
               "|---|---|---|"]
-    for col in COLUMNS[:4]:
-        p = stats.paired([r["modified CI"][col] for r in results],
-                         [r["CI"][col] for r in results])
+    for col, p in _paired(results).items():
         lines.append(f"| {col} | {stats.fmt(p['mean_diff'], p['low'], p['high'], 3)} "
                      f"| {p['share_better']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
-def _figures(config, out) -> None:
-    """The paper's figures, from run 0 (recomputed: it is a pure function of its seed)."""
-    seed = np.random.SeedSequence(config["seed"]).spawn(1)[0]
-    data, est = estimates(config, seed)
-    _measurements_figure(data, out / "table1_measurements.png")
-    _paths_figure(data, est, ("RBPF a", "RBPF b", "modified CI"), out / "table1_paths.png")
-    _covnorm_figure(data.times, est, config["fusion"]["window"], out / "table1_covnorm.png")
+def _figures(config, figure, out) -> None:
+    """The paper's figures, from the figure data of one run (see figure_data)."""
+    truth = np.array(figure["truth"]).reshape(-1, 2)
+    _measurements_figure(truth, figure["nodes"], out / "table1_measurements.png")
+    _paths_figure(truth, figure["paths"], out / "table1_paths.png")
+    _covnorm_figure(np.array(figure["times"]), figure["covnorm"], config["fusion"]["window"],
+                    out / "table1_covnorm.png")
 
 
-def _measurements_figure(data, path) -> None:
-    fig, axes = new_figure(1, len(data.nodes), width=10)
-    for ax, node, name in zip(axes, data.nodes, "ab", strict=True):
-        ax.plot(data.truth[:, 0], data.truth[:, 1], "k-", label="target path")
-        is_c = node.origin < 0
-        ax.plot(*node.values[~is_c].T, "o", ms=2, color="tab:blue", label="target meas.")
-        ax.plot(*node.values[is_c].T, "x", ms=3, color="tab:pink", label="clutter")
+def _measurements_figure(truth, nodes, path) -> None:
+    fig, axes = new_figure(1, len(nodes), width=10)
+    for ax, node, name in zip(axes, nodes, "ab", strict=True):
+        ax.plot(truth[:, 0], truth[:, 1], "k-", label="target path")
+        for key, style, ms, color, label in (("target", "o", 2, "tab:blue", "target meas."),
+                                             ("clutter", "x", 3, "tab:pink", "clutter")):
+            ax.plot(*np.array(node[key]).reshape(-1, 2).T, style, ms=ms, color=color,
+                    label=label)
         ax.set_title(f"node {name}")
     axes[0].legend(loc="best", fontsize=8)
     save(fig, path)
 
 
-def _paths_figure(data, est, rows, path) -> None:
-    fig, axes = new_figure(1, len(rows), width=12)
-    for ax, row in zip(axes, rows, strict=True):
-        ax.plot(data.truth[:, 0], data.truth[:, 1], "r--", label="target path")
-        ax.plot(est[row][0][:, 0], est[row][0][:, 1], "k-", lw=1, label="estimate")
+def _paths_figure(truth, paths, path) -> None:
+    fig, axes = new_figure(1, len(PATH_ROWS), width=12)
+    for ax, row in zip(axes, PATH_ROWS, strict=True):
+        ax.plot(truth[:, 0], truth[:, 1], "r--", label="target path")
+        ax.plot(*np.array(paths[row]).reshape(-1, 2).T, "k-", lw=1, label="estimate")
         ax.set_title(row)
     axes[0].legend(loc="best", fontsize=8)
     save(fig, path)
 
 
-def _covnorm_figure(times, est, window, path) -> None:
+def _covnorm_figure(times, covnorm, window, path) -> None:
     fig, axes = new_figure(1, 1, width=6)
     sel = (times >= window[0]) & (times <= window[1])
     if not sel.any():  # a shortened run ends before the window: show all of it
         sel[:] = True
-    for row in ("RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet"):
-        axes[0].plot(times[sel], np.linalg.norm(est[row][1][sel], 2, axis=(1, 2)), label=row)
+    for row in COVNORM_ROWS:
+        axes[0].plot(times[sel], np.array(covnorm[row])[sel], label=row)
     axes[0].set_xlabel("time (s)")
     axes[0].set_ylabel("2-norm of covariance")
     axes[0].legend(fontsize=8)

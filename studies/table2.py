@@ -13,6 +13,9 @@ full-state squared error and MNCM_j the mean spectral norm of the matched covari
 table's MSE and MNCM are the sums over the targets ever matched. OSPA and GOSPA (position,
 cut-off c, order p, alpha = 2) and the cardinality error |n_est - n_true| are means over
 the steps.
+
+Run 0 also returns what the figures draw of it (`figure_data`), which the store keeps
+beside its scores, so `report` draws the figures without simulating again.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from trackers.scenarios import Table2Config, simulate_table2
 from . import config as configs
 from . import stats
 from .plotting import new_figure, save
+from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
 COLUMNS = ("mse", "mncm", "mse_pos", "mncm_pos", "ospa", "gospa", "card_err")
@@ -42,8 +46,41 @@ PAPER = {"RBMCDA 1": (0.1430, 0.0578), "RBMCDA 2": (0.4716, 0.0616),
          "modified CI 9": (0.0763, 0.0523), "modified CI 10": (0.0799, 0.0493)}
 
 
+SHOWN_NODE, SHOWN_PROC = 3, "9"  # the monitoring and processing node the figures show
+
+
 def scenario(config: dict) -> Table2Config:
     return configs.build(Table2Config, config["scenario"], "scenario")
+
+
+def check(config: dict) -> None:
+    """Refuse, with a ConfigError naming the field, anything in config this study cannot
+    run: called on the whole merged configuration before anything runs."""
+    configs.fields(config, "", ("runs", "seed", "backend", "scenario", "network", "fusion",
+                                "metrics"))
+    configs.run_fields(config)
+    nodes = len(scenario(config).p_detect)
+    net = configs.fields(config["network"], "network", ("neighbours", "association", "threshold"))
+    neighbours = net["neighbours"]  # processing node name -> its monitoring nodes
+    if not isinstance(neighbours, dict) or not neighbours:
+        raise configs.ConfigError("network.neighbours must be a table naming at least one "
+                                  f"processing node, got {neighbours!r}")
+    for proc, members in neighbours.items():
+        where = f"network.neighbours.{proc}"
+        for i, k in enumerate(configs.items(where, members)):
+            configs.integer(f"{where}[{i}]", k, low=1, high=nodes)
+        if len(set(members)) != len(members):
+            raise configs.ConfigError(f"{where} names a monitoring node twice: {members!r}")
+    configs.backend("backend", config["backend"],
+                    nodes=max(len(m) for m in neighbours.values()))
+    configs.choice("network.association", net["association"], ("nearest", "assignment"))
+    configs.number("network.threshold", net["threshold"], above=0)
+    fusion = configs.fields(config["fusion"], "fusion", ("chi_inv",))
+    configs.number("fusion.chi_inv", fusion["chi_inv"], low=1,
+                   why="the paper's chi^-1, the covariance growth over a missed detection")
+    metric = configs.fields(config["metrics"], "metrics", ("cutoff", "order"))
+    configs.number("metrics.cutoff", metric["cutoff"], above=0)
+    configs.number("metrics.order", metric["order"], low=1)
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):
@@ -59,7 +96,8 @@ def estimates(config: dict, seed: np.random.SeedSequence):
                             lifetime_shape=sc.lifetime_shape,
                             lifetime_scale=sc.lifetime_scale,
                             clutter_prior=sc.clutter_prior,
-                            clutter_density=sc.clutter_density)
+                            clutter_density=sc.clutter_density,
+                            resample_threshold=sc.resample_threshold)
         out[f"RBMCDA {k}"] = [_stack(step) for step in tracks]
     for proc, neighbours in config["network"]["neighbours"].items():
         out.update(_processing_node(config, sc, proc, neighbours, out))
@@ -113,9 +151,29 @@ def _fuse_groups(groups, neighbours, out, method, p_all, chi, backend):
              .reshape(-1, 4, 4)) for s in steps]
 
 
-def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> dict:
+def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dict, dict]:
+    """(scores of every node, figure data or None) of one run; the figure data is run
+    FIGURE_RUN's."""
     data, est = estimates(config, seed)
-    return {row: _scores(config, data, series) for row, series in est.items()}
+    figure = figure_data(data, est) if index == FIGURE_RUN else None
+    return {row: _scores(config, data, series) for row, series in est.items()}, figure
+
+
+def figure_data(data, est) -> dict:
+    """What the figures draw of one run: each target's path while alive, the measurements
+    and RBMCDA estimates (positions) of monitoring node SHOWN_NODE (or the last, if there
+    are fewer), the modified-CI estimates at SHOWN_PROC (if it exists), and the number of
+    targets over time, true and estimated (arrays; read back from the store as lists)."""
+    node = min(SHOWN_NODE, len(data.nodes))
+    rows = {"RBMCDA": f"RBMCDA {node}", "fused": f"modified CI {SHOWN_PROC}"}
+    rows = {key: row for key, row in rows.items() if row in est}
+    return {"node": node, "proc": SHOWN_PROC, "rows": rows, "times": data.times,
+            "n_alive": data.n_alive,
+            "paths": [data.truth[j, data.alive[j], :2] for j in range(len(data.truth))],
+            "measurements": data.nodes[node - 1].values,
+            "estimates": {key: np.concatenate([m[:, :2] for m, _ in est[row]])
+                          for key, row in rows.items()},
+            "counts": {key: [len(m) for m, _ in est[row]] for key, row in rows.items()}}
 
 
 def _scores(config, data, series) -> dict:
@@ -151,18 +209,34 @@ def _matches(means, truth, c):
 
 # ------------------------------------------------------------------------------ report
 
-def report(config: dict, results: list[dict], out: Path) -> None:
+def report(config: dict, results: list[dict], out: Path, figure: dict | None) -> None:
+    """table2.md, its tables as table2.csv and table2_paired.csv, and the figures of run
+    FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, results[0], COLUMNS)
     stats.write_csv(out / "table2.csv", rows, COLUMNS, PAPER, ("paper_mse_e-3", "paper_mncm"))
+    stats.write_rows(out / "table2_paired.csv",
+                     [{"node": proc, "measure": key, **p}
+                      for proc, pair in _paired(config, results).items()
+                      for key, p in pair.items()])
     (out / "table2.md").write_text(_markdown(config, rows, results))
-    _figures(config, out)
+    if figure is not None:
+        _figures(figure, out)
+
+
+def _paired(config, results) -> dict:
+    """{processing node: {"mse": ..., "mncm": ...}}: modified CI minus CI, paired."""
+    return {proc: {key: stats.paired([r[f"modified CI {proc}"][key] for r in results],
+                                     [r[f"CI {proc}"][key] for r in results])
+                   for key in ("mse", "mncm")}
+            for proc in config["network"]["neighbours"]}
 
 
 def _markdown(config, rows, results) -> str:
     lines = [f"# Table 2 ({len(results)} runs, seed {config['seed']}, backend "
              f"{config['backend']}, association {config['network']['association']})", "",
              "Mean and 95% interval over runs; MSE and MNCM summed over the targets matched "
-             "(studies/table2.py says how); the paper's MSE column is in units of 1e-3.", "",
+             "(studies/table2.py says how); the paper's MSE column is in units of 1e-3. "
+             + stats.INTERVAL_NOTE, "",
              "| node | MSE | paper MSE (x1e-3) | MNCM | paper MNCM | MSE pos | MNCM pos | OSPA "
              "| GOSPA | card. error |", "|---" * 10 + "|"]
     for row, cols in rows.items():
@@ -173,44 +247,41 @@ def _markdown(config, rows, results) -> str:
     lines += ["", "Paired comparison, modified CI minus CI at each processing node:", "",
               "| node | MSE difference [95%] | share MCI lower | MNCM difference [95%] |",
               "|---|---|---|---|"]
-    for proc in config["network"]["neighbours"]:
-        pm = stats.paired([r[f"modified CI {proc}"]["mse"] for r in results],
-                          [r[f"CI {proc}"]["mse"] for r in results])
-        pc = stats.paired([r[f"modified CI {proc}"]["mncm"] for r in results],
-                          [r[f"CI {proc}"]["mncm"] for r in results])
+    for proc, pair in _paired(config, results).items():
+        pm, pc = pair["mse"], pair["mncm"]
         lines.append(f"| {proc} | {stats.fmt(pm['mean_diff'], pm['low'], pm['high'], 3)} | "
                      f"{pm['share_better']:.2f} | "
                      f"{stats.fmt(pc['mean_diff'], pc['low'], pc['high'], 3)} |")
     return "\n".join(lines) + "\n"
 
 
-def _figures(config, out) -> None:
-    """The paper's figures from run 0: node 3 (paths, measurements, estimates, number of
-    targets) and the fused estimates at node 9."""
-    seed = np.random.SeedSequence(config["seed"]).spawn(1)[0]
-    data, est = estimates(config, seed)
+def _figures(figure, out) -> None:
+    """The paper's figures from the figure data of one run (see figure_data): node 3
+    (paths, measurements, estimates, number of targets) and the fused estimates at node 9."""
+    node, proc, est = figure["node"], figure["proc"], figure["estimates"]
+    paths = [np.array(p).reshape(-1, 2) for p in figure["paths"]]
     fig, axes = new_figure(1, 3, width=14)
-    for j in range(len(data.truth)):
+    for path in paths:
         for ax in axes[:2]:
-            ax.plot(data.truth[j, :, 0], data.truth[j, :, 1], "k-", lw=1)
-    axes[0].plot(*data.nodes[2].values.T, "x", ms=3, color="tab:red")
-    axes[0].set_title("targets and measurements, node 3")
-    pts = np.concatenate([m for m, _ in est["RBMCDA 3"]])
-    axes[1].plot(pts[:, 0], pts[:, 1], "o", ms=1.5, color="tab:red")
-    axes[1].set_title("RBMCDA estimates, node 3")
-    axes[2].plot(data.times, data.n_alive, "k-", label="truth")
-    for row, style in (("RBMCDA 3", "r--"), ("modified CI 9", "b:")):
-        if row in est:
-            axes[2].plot(data.times, [len(m) for m, _ in est[row]], style, label=row)
+            ax.plot(path[:, 0], path[:, 1], "k-", lw=1)
+    axes[0].plot(*np.array(figure["measurements"]).reshape(-1, 2).T, "x", ms=3,
+                 color="tab:red")
+    axes[0].set_title(f"targets and measurements, node {node}")
+    if "RBMCDA" in est:
+        axes[1].plot(*np.array(est["RBMCDA"]).reshape(-1, 2).T, "o", ms=1.5, color="tab:red")
+    axes[1].set_title(f"RBMCDA estimates, node {node}")
+    axes[2].plot(figure["times"], figure["n_alive"], "k-", label="truth")
+    for key, counts in figure["counts"].items():
+        axes[2].plot(figure["times"], counts, {"RBMCDA": "r--", "fused": "b:"}[key],
+                     label=figure["rows"][key])
     axes[2].set_xlabel("time (s)")
     axes[2].set_title("number of targets")
     axes[2].legend(fontsize=8)
-    save(fig, out / "table2_node3.png")
-    if "modified CI 9" in est:
+    save(fig, out / f"table2_node{node}.png")
+    if "fused" in est:
         fig, axes = new_figure(1, 1, width=5)
-        for j in range(len(data.truth)):
-            axes[0].plot(data.truth[j, :, 0], data.truth[j, :, 1], "k-", lw=1)
-        pts = np.concatenate([m for m, _ in est["modified CI 9"]])
-        axes[0].plot(pts[:, 0], pts[:, 1], "o", ms=1.5, color="tab:blue")
-        axes[0].set_title("modified CI, processing node 9")
-        save(fig, out / "table2_node9.png")
+        for path in paths:
+            axes[0].plot(path[:, 0], path[:, 1], "k-", lw=1)
+        axes[0].plot(*np.array(est["fused"]).reshape(-1, 2).T, "o", ms=1.5, color="tab:blue")
+        axes[0].set_title(f"modified CI, processing node {proc}")
+        save(fig, out / f"table2_node{proc}.png")

@@ -1,23 +1,23 @@
-"""The studies command line on a tiny Table 1: outputs, determinism across executors,
-resuming after a kill, refusing a database of another configuration."""
+"""The studies command line on a tiny Table 1: outputs, `report` from the store alone,
+determinism across executors, refusing a store of another configuration, and `list`.
+Killing and interrupting a running study: test_studies_interrupt.py."""
 
-import os
-import signal
+import json
 import sqlite3
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
+from studies import table1
 from studies.__main__ import main
 
+# 40 steps, 5 particles and the exact "newton" backend: a run takes about 0.05 s.
 TINY = """
-runs = 4
+runs = 3
+backend = "newton"
 [scenario]
-n_steps = 60
-n_particles = 10
+n_steps = 40
+n_particles = 5
 """
 
 
@@ -28,27 +28,82 @@ def tiny(tmp_path) -> Path:
     return path
 
 
-def _run(tiny, out, *extra) -> str:
-    rc = main(["run", "table1", "--config", str(tiny), "--out", str(out), "--quiet", *extra])
+def _run(tiny, out, *extra, study="table1") -> str:
+    rc = main(["run", study, "--config", str(tiny), "--out", str(out), "--quiet", *extra])
     assert rc == 0
-    return (out / "table1" / "table1.csv").read_text()
+    return (out / study / f"{study}.csv").read_text()
 
 
-def test_cli_writes_tables_figures_and_meta(tiny, tmp_path):
-    _run(tiny, tmp_path / "a", "--workers", "1")
-    folder = tmp_path / "a" / "table1"
-    for name in ("table1.md", "table1.csv", "meta.json", "table1_measurements.png",
-                 "table1_paths.png", "table1_covnorm.png"):
+def _stored(db: Path) -> int:
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
+            return con.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
+def test_run_writes_tables_csv_figures_and_meta(tiny, tmp_path):
+    _run(tiny, tmp_path, "--workers", "1")
+    folder = tmp_path / "table1"
+    for name in ("table1.md", "table1.csv", "table1_paired.csv", "meta.json",
+                 "table1_measurements.png", "table1_paths.png", "table1_covnorm.png"):
         assert (folder / name).stat().st_size > 0, name
     assert "modified CI" in (folder / "table1.md").read_text()
-    assert main(["report", "table1", "--config", str(tiny), "--out", str(tmp_path / "a")]) == 0
+    assert "mse_full" in (folder / "table1_paired.csv").read_text()
+    info = json.loads((folder / "meta.json").read_text())
+    assert info["runs"] == 3 and info["invocations"] == 1
+    assert 0 < info["run_compute_time_s"] <= info["wall_time_s"]
+
+
+def test_report_rebuilds_from_the_store_alone_without_simulating(tiny, tmp_path,
+                                                                 monkeypatch):
+    """The run's config (here 3 runs of 40 steps, not the default 100 of 960) comes from
+    the store; the figures come from run 0's stored figure data, not a new simulation;
+    meta.json is left as the run wrote it, and report.json says what report did."""
+    _run(tiny, tmp_path, "--workers", "1")
+    folder = tmp_path / "table1"
+    meta_before = (folder / "meta.json").read_text()
+    table_before = (folder / "table1.md").read_text()
+    for name in ("table1.md", "table1.csv", "table1_paths.png"):
+        (folder / name).unlink()
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("report simulated a run")
+    monkeypatch.setattr(table1, "estimates", no_simulation)
+    assert main(["report", "table1", "--out", str(tmp_path)]) == 0
+    assert (folder / "table1.md").read_text() == table_before
+    assert (folder / "table1_paths.png").stat().st_size > 0
+    assert (folder / "meta.json").read_text() == meta_before
+    provenance = json.loads((folder / "report.json").read_text())
+    assert provenance["runs_reported"] == 3 and provenance["command"].endswith(
+        f"report table1 --out {tmp_path}")
+
+
+def test_report_of_the_quick_paper_needs_no_flags(tmp_path, capsys):
+    """The README's flow: `run paper --quick`, then `report table1`, `report table2` and
+    `report paper` (here with tiny scenarios)."""
+    config = tmp_path / "tiny.toml"
+    config.write_text('backend = "newton"\n[scenario]\nn_steps = 30\nn_particles = 3\n')
+    assert main(["run", "paper", "--quick", "--runs", "2", "--config", str(config),
+                 "--out", str(tmp_path), "--quiet", "--workers", "1"]) == 0
+    for name in ("table2", "paper"):  # the README's example, and both tables
+        assert main(["report", name, "--out", str(tmp_path)]) == 0, capsys.readouterr().err
+    assert "(2 runs" in (tmp_path / "table2" / "table2.md").read_text()
+
+
+@pytest.mark.parametrize("name", ["table1", "paper", "backends"])
+def test_report_of_a_study_never_run_says_so_and_creates_nothing(tmp_path, capsys, name):
+    out = tmp_path / "nothing"
+    assert main(["report", name, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "has not been run there" in err and len(err.splitlines()) == 1
+    assert not out.exists()
 
 
 def test_same_seed_same_table_whatever_the_executor(tiny, tmp_path):
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
     assert _run(tiny, tmp_path / "p", "--workers", "2") == serial
-    other = _run(tiny, tmp_path / "o", "--workers", "1", "--seed", "7")
-    assert other != serial
+    assert _run(tiny, tmp_path / "o", "--workers", "1", "--seed", "7") != serial
 
 
 def test_dask_local_cluster_gives_identical_results(tiny, tmp_path):
@@ -59,60 +114,57 @@ def test_dask_local_cluster_gives_identical_results(tiny, tmp_path):
         assert _run(tiny, tmp_path / "d", "--scheduler", cluster.scheduler_address) == serial
 
 
-def _stored(db: Path) -> int:
-    try:
-        with sqlite3.connect(db) as con:
-            return con.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
-    except sqlite3.Error:
-        return 0
-
-
-def test_killed_study_resumes_to_the_uninterrupted_table(tiny, tmp_path):
-    out = tmp_path / "k"
-    cmd = [sys.executable, "-m", "studies", "run", "table1", "--config", str(tiny), "--out",
-           str(out), "--workers", "1", "--quiet", "--runs", "8"]
-    proc = subprocess.Popen(cmd, cwd=Path(__file__).parents[1], start_new_session=True)
-    db = out / "table1" / "runs.sqlite"
-    deadline = time.time() + 120
-    while _stored(db) < 2 and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    stored = _stored(db)
-    assert 2 <= stored < 8, "the kill must land part-way"
-    resumed = _run(tiny, out, "--workers", "1", "--runs", "8")
-    assert _stored(db) == 8
-    assert resumed == _run(tiny, tmp_path / "u", "--workers", "1", "--runs", "8")
-
-
-def test_database_of_another_configuration_is_refused(tiny, tmp_path, capsys):
-    _run(tiny, tmp_path / "r", "--workers", "1")
-    rc = main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "r"),
-               "--quiet", "--seed", "99"])
+def test_store_of_another_configuration_is_refused_before_running(tiny, tmp_path, capsys):
+    _run(tiny, tmp_path, "--workers", "1")
+    before = (tmp_path / "table1" / "runs.sqlite").read_bytes()
+    rc = main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path), "--quiet",
+               "--seed", "99"])
     assert rc == 2
     assert "another configuration" in capsys.readouterr().err
+    assert (tmp_path / "table1" / "runs.sqlite").read_bytes() == before
 
 
-def test_damaged_database_is_reported(tiny, tmp_path, capsys):
-    folder = tmp_path / "x" / "table1"
-    folder.mkdir(parents=True)
-    (folder / "runs.sqlite").write_bytes(b"this is not sqlite" * 100)
-    rc = main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "x"), "--quiet"])
-    assert rc == 2
-    assert "not a readable study database" in capsys.readouterr().err
+def test_store_without_runs_does_not_block_a_corrected_configuration(tiny, tmp_path,
+                                                                     monkeypatch, capsys):
+    """A first attempt that fails in its first run leaves a store with no runs; the
+    corrected configuration then runs into it."""
+    def broken(*args, **kwargs):
+        raise RuntimeError("boom")
+    with monkeypatch.context() as m:
+        m.setattr(table1, "estimates", broken)
+        assert main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path),
+                     "--quiet", "--workers", "1", "--seed", "5"]) == 2
+    assert "run 0 failed: RuntimeError: boom" in capsys.readouterr().err
+    assert _stored(tmp_path / "table1" / "runs.sqlite") == 0
+    _run(tiny, tmp_path, "--workers", "1")
+    assert _stored(tmp_path / "table1" / "runs.sqlite") == 3
 
 
-@pytest.mark.parametrize("text,message", [
-    ("[scenario]\nn_stepz = 5\n", "unknown field(s) ['n_stepz']"),
-    ("runz = 5\n", "unknown field(s) ['runz']"),
-    ("[scenario]\ndt = -1.0\n", "dt"),
-    ("runs = 0\n", "runs must be an integer >= 1"),
-    ("runs = [\n", "--config"),
-])
-def test_bad_configuration_is_reported(tmp_path, capsys, text, message):
-    path = tmp_path / "bad.toml"
-    path.write_text(text)
-    rc = main(["run", "table1", "--config", str(path), "--out", str(tmp_path), "--quiet",
-               "--workers", "1"])
-    assert rc == 2
-    assert message in capsys.readouterr().err
+def test_list_shows_each_whole_description(capsys):
+    assert main(["list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    table2 = next(line for line in lines if line.startswith("table2"))
+    assert table2.endswith("3 processing nodes fusing with CI and modified CI.")
+    assert len(lines) == 5
+
+
+def test_report_of_a_benchmark_rebuilds_from_its_meta_json(tmp_path):
+    config = tmp_path / "b.toml"
+    config.write_text("n = [2]\nN = [2, 3]\ninstances = 2\nrepeats = 1\nbatch_pairs = 50\n"
+                      "batch_n = [3]\nbatch_repeats = 1\n")
+    assert main(["run", "backends", "--config", str(config), "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    folder = tmp_path / "backends"
+    table, meta_before = ((folder / n).read_text() for n in ("backends.md", "meta.json"))
+    (folder / "backends.md").unlink()
+    assert main(["report", "backends", "--out", str(tmp_path)]) == 0
+    assert (folder / "backends.md").read_text() == table
+    assert (folder / "meta.json").read_text() == meta_before
+
+
+def test_an_out_folder_that_cannot_be_made_is_refused_in_one_line(tiny, tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    assert main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "file"),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "file/table1" in err

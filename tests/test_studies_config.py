@@ -1,0 +1,123 @@
+"""Every configuration error is refused before anything runs or is created: one line,
+naming the study and the field as the user wrote it, no traceback."""
+
+import pytest
+
+from studies import config as configs
+from studies import runner
+from studies.__main__ import STUDIES, _module, main
+
+CASES = [  # (study, TOML file, what the one line must say)
+    ("table1", "[fusion]\nchi_inv = 0.5\n", "table1: fusion.chi_inv must be a finite number "
+     ">= 1 (the paper's chi^-1"),
+    ("table1", 'backend = "gurobi"\n', "backend must be one of ['clarabel'"),
+    ("table1", "[fusion]\nchi = 2.0\n", "[fusion] has unknown field(s) ['chi']"),
+    ("table1", "fusion = 3\n", "[fusion] must be a table, got 3"),
+    ("table1", "[fusion]\nwindow = [15.0, 13.0]\n", "fusion.window must be [start, end]"),
+    ("table1", "[fusion]\nwindow = [15.0]\n", "fusion.window must be a list of 2 values"),
+    ("table1", '[scenario]\ndt = "fast"\n', "scenario.dt must be a finite number, got 'fast'"),
+    ("table1", "[scenario]\nn_steps = 10.5\n", "scenario.n_steps must be an integer"),
+    ("table1", "[scenario]\nx0 = [1, 2, 'a', 4]\n", "scenario.x0[2] must be a finite number"),
+    ("table1", "[scenario]\np_detect = [0.9, 0.7, 0.5]\n", "p_detect must hold 2"),
+    ("table1", "[scenario]\nn_stepz = 5\n", "unknown field(s) ['n_stepz']"),
+    ("table1", "[scenario]\ndt = -1.0\n", "dt must be a finite positive number"),
+    ("table1", "[scenario]\ntruth_process_noise = 1\n", "must be true or false"),
+    ("table1", "runz = 5\n", "unknown field(s) ['runz']"),
+    ("table1", "runs = 0\n", "runs must be an integer >= 1, got 0"),
+    ("table1", 'runs = "5"\n', "runs must be an integer >= 1, got '5'"),
+    ("table1", "seed = -1\n", "seed must be an integer >= 0, got -1"),
+    ("table1", "runs = [\n", "--config"),
+    ("table2", '[network]\nassociation = "closest"\n', "network.association must be one of"),
+    ("table2", "[network]\nthreshold = -0.3\n", "network.threshold must be a finite number > 0"),
+    ("table2", '[network.neighbours]\n"8" = [1, 2, 9]\n',
+     "network.neighbours.8[2] must be an integer >= 1 and <= 7, got 9"),
+    ("table2", '[network.neighbours]\n"8" = [1, 1]\n', "names a monitoring node twice"),
+    ("table2", "[metrics]\ncutoff = 0\n", "metrics.cutoff must be a finite number > 0"),
+    ("table2", "[metrics]\norder = 0.5\n", "metrics.order must be a finite number >= 1"),
+    ("table2", "[fusion]\nchi_inv = 0.99\n", "fusion.chi_inv must be a finite number >= 1"),
+    ("table2", "[scenario]\nresample_threshold = 1.5\n", "resample_threshold must be a "
+     "probability"),
+    ("table2", 'backend = "closed-form"\n', "'closed-form' fuses two estimates only"),
+    ("table2", '[[scenario.targets]]\nx0 = [0, 1, "a", 0]\nbirth = 0.0\ndeath = 1.0\n',
+     "scenario.targets[0].x0[2] must be a finite number"),
+    ("nnode", "[sweeps]\nrho = [0.0, 1.5]\n", "sweeps.rho[1] must be a finite number >= 0 "
+     "and <= 1, got 1.5"),
+    ("nnode", '[sweeps.bad]\nfield = "nope"\nvalues = [1]\n', "sweeps.bad.field must be one"),
+    ("nnode", "[sweeps]\nfoo = [1, 2]\n", "sweeps.foo sweeps no field of [static]"),
+    ("nnode", "[sweeps.chi_stale]\nfixed = { reported_share = 2.0 }\n",
+     "sweeps.chi_stale.fixed.reported_share must be a finite number >= 0 and <= 1"),
+    ("nnode", "[static]\nchi_inv_assumed = 0.5\n", "static.chi_inv_assumed must be a finite "
+     "number >= 1"),
+    ("nnode", "[dynamic]\nburn_in = 500\n", "dynamic.burn_in must be below dynamic.steps"),
+    ("nnode", '[scaling]\nbackends = ["gurobi"]\n', "scaling.backends[0] must be one of"),
+    ("nnode", '[scaling]\nbackends = ["closed-form"]\n', "'closed-form' fuses two estimates"),
+    ("backends", 'criteria = ["trace", "det"]\n', "criteria[1] must be one of"),
+    ("backends", "instances = 0\n", "instances must be an integer >= 1"),
+    ("backends", 'backends = ["gurobi"]\n', "backends[0] must be one of"),
+]
+
+
+@pytest.fixture(autouse=True)
+def nothing_runs(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("a study ran")
+    monkeypatch.setattr(runner, "run_all", refuse)
+    for name in STUDIES:
+        if not hasattr(_module(name), "run_one"):
+            monkeypatch.setattr(_module(name), "run", refuse)
+
+
+def _refused(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("study,text,message", CASES)
+def test_a_bad_configuration_is_refused_before_anything_is_created(tmp_path, capsys, study,
+                                                                   text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    err = _refused(capsys, ["run", study, "--config", str(path), "--out", str(out)])
+    assert message in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("flags,message", [
+    (["--workers", "0"], "--workers must be an integer >= 1, got 0"),
+    (["--workers", "-2"], "--workers must be an integer >= 1, got -2"),
+    (["--runs", "0"], "runs must be an integer >= 1, got 0"),
+    (["--seed", "-1"], "seed must be an integer >= 0, got -1"),
+])
+def test_bad_flags_are_refused_before_anything_is_created(tmp_path, capsys, flags, message):
+    out = tmp_path / "out"
+    assert message in _refused(capsys, ["run", "paper", "--out", str(out), *flags])
+    assert not out.exists()
+
+
+def test_runs_flag_does_not_apply_to_a_benchmark(tmp_path, capsys):
+    assert "--runs does not apply" in _refused(capsys, ["run", "backends", "--runs", "3",
+                                                        "--out", str(tmp_path)])
+
+
+def test_a_group_checks_every_store_before_running_any_study(tmp_path, capsys):
+    """`run paper` with a table2 store of another seed: refused before table1 starts."""
+    main_seed = ["run", "table2", "--out", str(tmp_path), "--seed", "1"]
+    table2 = tmp_path / "table2"
+    with pytest.MonkeyPatch.context() as m:  # a store with one run of seed 1
+        m.setattr(runner, "run_all", lambda run_one, config, store, **kw:
+                  store.put(0, {}, None, 0.0))
+        m.setattr(_module("table2"), "report", lambda *args: None)
+        assert main(main_seed) == 0
+    capsys.readouterr()
+    assert "another configuration" in _refused(capsys, ["run", "paper", "--out",
+                                                        str(tmp_path), "--seed", "2"])
+    assert not (tmp_path / "table1").exists() and (table2 / "runs.sqlite").exists()
+
+
+@pytest.mark.parametrize("name", sorted(STUDIES))
+def test_the_default_and_quick_configurations_pass_their_check(name):
+    for quick in (False, True):
+        _module(name).check(configs.load(name, quick=quick))

@@ -1,0 +1,107 @@
+"""Stopping a running study. Killed (SIGKILL), it loses no stored run; on Ctrl-C (SIGINT
+to its process group, as a terminal sends it) it stops within 2 s and says how many runs
+are stored. Either way the stored runs are intact, the resumed study holds the results
+of an uninterrupted one (so its tables are the same), and meta.json counts the time of
+every invocation."""
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from studies import config as configs
+from studies import runner, table1
+from studies.__main__ import main
+from studies.store import Store
+
+ROOT = Path(__file__).parents[1]
+RUNS = 6
+# about 0.2 s per run, so that a signal lands inside a run
+CONFIG = 'backend = "newton"\n[scenario]\nn_steps = 120\nn_particles = 5\n'
+
+
+def _stored(db: Path) -> int:
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
+            return con.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
+def _resume(config: Path, out: Path) -> dict:
+    """Run the study to the end in this process; returns the stored results."""
+    assert main(["run", "table1", "--config", str(config), "--out", str(out), "--quiet",
+                 "--workers", "1", "--runs", str(RUNS)]) == 0
+    store = Store(out / "table1" / "runs.sqlite")  # verifies every stored run
+    try:
+        return store.results(RUNS)
+    finally:
+        store.close()
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("config") / "c.toml"
+    path.write_text(CONFIG)
+    return path
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(config) -> dict:
+    """The result of every run computed directly, as JSON stores it: what the store of a
+    study interrupted and resumed must hold."""
+    cfg = configs.load("table1", path=config) | {"runs": RUNS}
+    seeds = runner.seeds(cfg["seed"], RUNS)
+    return {i: json.loads(json.dumps(table1.run_one(cfg, i, seeds[i])[0]))
+            for i in range(RUNS)}
+
+
+def _start_and_signal(config, out, workers, sig) -> tuple[subprocess.Popen, str, float]:
+    """Start the study in a subprocess, send sig to its process group once 2 runs are
+    stored; returns the process, its stderr and the seconds it took to stop."""
+    cmd = [sys.executable, "-m", "studies", "run", "table1", "--config", str(config),
+           "--out", str(out), "--workers", workers, "--quiet", "--runs", str(RUNS)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, start_new_session=True, stderr=subprocess.PIPE,
+                            text=True)
+    db = out / "table1" / "runs.sqlite"
+    deadline = time.monotonic() + 60
+    while _stored(db) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.01)
+    t0 = time.monotonic()
+    os.killpg(proc.pid, sig)
+    _, err = proc.communicate(timeout=30)
+    return proc, err, time.monotonic() - t0
+
+
+def _resumes(config, out, uninterrupted) -> None:
+    assert _resume(config, out) == uninterrupted
+    info = json.loads((out / "table1" / "meta.json").read_text())
+    assert info["invocations"] == 2
+    assert info["wall_time_s"] > info["this_invocation_wall_time_s"]
+    assert info["run_compute_time_s"] > 0
+
+
+def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, tmp_path):
+    _start_and_signal(config, tmp_path, "1", signal.SIGKILL)
+    assert 2 <= _stored(tmp_path / "table1" / "runs.sqlite") < RUNS, "must land part-way"
+    assert _resume(config, tmp_path) == uninterrupted
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_ctrl_c_stops_within_2_s_and_the_study_resumes(config, uninterrupted, tmp_path,
+                                                       workers):
+    proc, err, stop = _start_and_signal(config, tmp_path, workers, signal.SIGINT)
+    assert proc.returncode == 130, err
+    assert stop < 2.0, f"stopped after {stop:.2f} s"
+    stored = _stored(tmp_path / "table1" / "runs.sqlite")
+    assert 2 <= stored < RUNS, "Ctrl-C must land part-way"
+    assert err.strip().splitlines()[-1].startswith(
+        f"interrupted: {stored} of {RUNS} runs of table1 are stored")
+    assert "Traceback" not in err
+    _resumes(config, tmp_path, uninterrupted)

@@ -1,0 +1,134 @@
+"""The results store: every row verified by its checksum, a damaged or foreign file refused
+with one line (never read, never treated as new), the configuration kept for `report`."""
+
+import sqlite3
+
+import numpy as np
+import pytest
+
+from studies.__main__ import main
+from studies.store import Store, StoreError
+
+CONFIG = {"runs": 3, "seed": 1, "backend": "newton", "scenario": {"n_steps": 5}}
+
+
+def _filled(tmp_path, runs=3):
+    path = tmp_path / "runs.sqlite"
+    store = Store(path, CONFIG)
+    for i in range(runs):
+        store.put(i, {"row": {"mse": 1.25 + i}}, {"xy": np.arange(4.0)} if i == 0 else None,
+                  0.5)
+    store.close()
+    return path
+
+
+def _refused(path, match) -> str:
+    with pytest.raises(StoreError, match=match) as info:
+        Store(path)
+    message = str(info.value)
+    assert len(message.splitlines()) == 1
+    return message
+
+
+def test_a_store_keeps_results_figure_data_config_and_times(tmp_path):
+    store = Store(_filled(tmp_path), CONFIG)
+    assert store.config == CONFIG
+    assert store.results(3) == {i: {"row": {"mse": 1.25 + i}} for i in range(3)}
+    assert store.results(2) == {0: {"row": {"mse": 1.25}}, 1: {"row": {"mse": 2.25}}}
+    assert store.figure(0) == {"xy": [0.0, 1.0, 2.0, 3.0]} and store.figure(1) is None
+    assert store.run_seconds() == 1.5
+    store.add_invocation(2.0)
+    store.add_invocation(3.0)
+    assert store.totals() == {"wall_time_s": 5.0, "invocations": 2, "run_compute_time_s": 1.5}
+    store.close()
+
+
+def _tamper(path, sql):
+    with sqlite3.connect(path) as con:
+        con.execute(sql)
+
+
+def test_a_digit_changed_in_a_stored_result_is_refused(tmp_path):
+    path = _filled(tmp_path)
+    _tamper(path, "UPDATE runs SET result = replace(result, '2.25', '2.26') WHERE idx = 1")
+    _refused(path, "run 1 does not match its checksum")
+
+
+def test_a_corrupted_json_byte_is_refused_not_parsed(tmp_path):
+    path = _filled(tmp_path)
+    _tamper(path, "UPDATE runs SET result = replace(result, '}', ']') WHERE idx = 2")
+    _refused(path, "run 2 does not match its checksum")
+
+
+def test_changed_figure_data_or_time_is_refused(tmp_path):
+    path = _filled(tmp_path)
+    _tamper(path, "UPDATE runs SET seconds = 0.25 WHERE idx = 0")
+    _refused(path, "run 0 does not match its checksum")
+
+
+def test_a_changed_configuration_is_refused(tmp_path):
+    path = _filled(tmp_path)
+    _tamper(path, "UPDATE meta SET value = replace(value, '\"seed\": 1', '\"seed\": 2') "
+                  "WHERE key = 'config'")
+    _refused(path, "'config' record does not match its checksum")
+
+
+def test_a_store_truncated_to_zero_bytes_is_refused_not_new(tmp_path):
+    path = _filled(tmp_path)
+    path.write_bytes(b"")
+    _refused(path, "is empty or not a study store")
+    with pytest.raises(StoreError, match="is empty or not a study store"):
+        Store(path, CONFIG)  # nor is it taken as a new store to run into
+    assert path.read_bytes() == b""
+
+
+@pytest.mark.parametrize("cut", [0.5, 0.9])
+def test_a_truncated_or_overwritten_file_is_refused(tmp_path, cut):
+    path = _filled(tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * cut)])
+    _refused(path, "not a usable study store|does not match its checksum")
+    path.write_bytes(b"this is not sqlite" * 100)
+    _refused(path, "not a usable study store")
+
+
+def test_a_store_of_an_older_version_is_refused(tmp_path):
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as con:
+        con.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
+        con.execute("CREATE TABLE runs (idx INTEGER PRIMARY KEY, result TEXT NOT NULL)")
+    _refused(path, "was not written by this version")
+
+
+def test_only_a_missing_file_is_a_new_store_and_reading_creates_nothing(tmp_path):
+    path = tmp_path / "sub" / "runs.sqlite"
+    with pytest.raises(StoreError, match="has not been run there"):
+        Store(path)
+    Store(path, CONFIG, write=False).close()
+    assert not path.parent.exists()
+    store = Store(path, CONFIG)
+    assert store.done() == set() and path.exists()
+    store.close()
+
+
+def test_another_configuration_is_refused_unless_the_store_is_empty(tmp_path):
+    other = CONFIG | {"seed": 2}
+    empty = tmp_path / "empty.sqlite"
+    Store(empty, CONFIG).close()
+    Store(empty, other).close()  # no runs: the new configuration takes the store
+    assert Store(empty).config == other
+    with pytest.raises(StoreError, match="holds 3 run.s. of another configuration"):
+        Store(_filled(tmp_path), other)
+    more = Store(_filled(tmp_path / "x"), CONFIG | {"runs": 5})  # more runs: same study
+    assert more.config["runs"] == 5
+    more.close()
+
+
+def test_the_cli_refuses_a_damaged_store_in_one_line(tmp_path, capsys):
+    folder = tmp_path / "table1"
+    folder.mkdir()
+    path = _filled(folder)
+    _tamper(path, "UPDATE runs SET result = replace(result, '1.25', '7.25') WHERE idx = 0")
+    assert main(["report", "table1", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "run 0 does not match its checksum" in err
