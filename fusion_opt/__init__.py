@@ -9,6 +9,7 @@ of Daeichian & Honarvar (2018), each a convex program over the weight simplex, s
 Clarabel through CVXPY by default, with an optimality certificate on every result.
 """
 
+from .association import Group, associate
 from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates
@@ -19,5 +20,6 @@ from .results import (BatchFusionResult, FusionInputError, FusionResult, FusionS
 
 __all__ = [
     "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult", "FusionSolverError",
-    "Status", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
+    "Group", "Status", "associate", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci",
+    "optimality_gap",
 ]
