@@ -15,11 +15,12 @@ from .batch import fuse_batch
 from .estimates import Estimates
 from .fusion import bci, ci, fuse, mbci, optimality_gap
 from .mbci import detection_scales
-from .results import (BatchFusionResult, FusionInputError, FusionResult, FusionSolverError,
-                      Status)
+from .network import Network
+from .processing import ProcessingNode
+from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 
 __all__ = [
-    "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult", "FusionSolverError",
-    "Group", "Status", "associate", "bci", "ci", "detection_scales", "fuse", "fuse_batch", "mbci",
-    "optimality_gap",
+    "BACKENDS", "BatchFusionResult", "Estimates", "FusionInputError", "FusionResult",
+    "FusionSolverError", "Group", "Network", "ProcessingNode", "Status", "associate", "bci", "ci",
+    "detection_scales", "fuse", "fuse_batch", "mbci", "optimality_gap",
 ]
