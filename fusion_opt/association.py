@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -134,26 +136,54 @@ def _check_reports(reports) -> tuple[list, list[Estimates]]:
 
 
 def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
-    """Single-linkage with one member per source: points (M, d), owner (M,) source index."""
+    """Single-linkage with one member per source: points (M, d), owner (M,) source index.
+
+    Joins never cross a connected component of the graph of close pairs, and a component
+    holding at most one estimate per source ends as one group whatever the order of its
+    joins; so only components with two estimates of one source are joined pair by pair."""
     M = len(points)
-    pairs = cKDTree(points).query_pairs(threshold, output_type="ndarray") if M else \
-        np.zeros((0, 2), dtype=int)
+    if M == 0:
+        return []
+    pairs = cKDTree(points).query_pairs(threshold, output_type="ndarray")  # (P, 2), i < j
     d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
     keep = (d < threshold) & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
     pairs, d = pairs[keep], d[keep]
-    label = np.arange(M)
-    members = {i: [i] for i in range(M)}
-    sources = {i: {int(owner[i])} for i in range(M)}
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(M, M))
+    label = connected_components(graph, directed=False)[1]  # (M,) component of each point
+    conflicted = _repeats_a_source(label, owner)
+    inside = conflicted[pairs[:, 0]]
+    for members in _ordered_joins(pairs[inside], d[inside], owner, np.flatnonzero(conflicted)):
+        label[members] = M + members[0]  # a fresh label: components are numbered below M
+    order = np.argsort(label, kind="stable")  # stable: members stay in report order
+    groups = np.split(order, np.flatnonzero(np.diff(label[order])) + 1)
+    return sorted(groups, key=lambda g: g[0])
+
+
+def _repeats_a_source(label: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(M,) True for the points of components holding two estimates of one source."""
+    key = label * (owner.max() + 1) + owner  # (component, source)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return np.isin(label, label[counts[inverse] > 1])
+
+
+def _ordered_joins(pairs: np.ndarray, d: np.ndarray, owner: np.ndarray,
+                   points: np.ndarray) -> list[list[int]]:
+    """Join the closest pair (pairs (P, 2), distances d (P,)) of two groups sharing no
+    source, in order of distance, starting from the given points alone."""
+    group = {int(i): int(i) for i in points}
+    members = {int(i): [int(i)] for i in points}
+    sources = {int(i): {int(owner[i])} for i in points}
     for a, b in pairs[np.lexsort((pairs[:, 1], pairs[:, 0], d))].tolist():
-        ga, gb = label[a], label[b]
+        ga, gb = group[a], group[b]
         if ga == gb or sources[ga] & sources[gb]:
             continue
         if len(members[ga]) < len(members[gb]):
             ga, gb = gb, ga
-        label[members[gb]] = ga
+        for i in members[gb]:
+            group[i] = ga
         members[ga] += members.pop(gb)
         sources[ga] |= sources.pop(gb)
-    return [np.sort(m) for _, m in sorted(members.items(), key=lambda item: min(item[1]))]
+    return [sorted(m) for m in members.values()]
 
 
 def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:

@@ -120,27 +120,30 @@ class ProcessingNode:
     def _ids(self, groups: list[Group], means: np.ndarray) -> np.ndarray:
         """Fused track ids (G,): inherited by shared (source, track id) pairs, else new."""
         previous = {pair: fid for fid, g in self.groups.items() for pair in g.pairs}
-        candidates = []  # (-shared pairs, distance, group, previous id)
+        group, fid, shared = [], [], []  # one entry per (group, previous track) sharing pairs
         for i, g in enumerate(groups):
-            shared = Counter(previous[p] for p in g.pairs if p in previous)
-            for fid, count in shared.items():
-                candidates.append((-count, self._distance(means[i], fid), i, fid))
+            for f, count in Counter(previous[p] for p in g.pairs if p in previous).items():
+                group.append(i)
+                fid.append(f)
+                shared.append(count)
+        distance = self._distances(means[group], fid)
         ids = np.full(len(groups), -1, dtype=np.int64)
         taken = set()
-        for _, _, i, fid in sorted(candidates):
-            if ids[i] < 0 and fid not in taken:
-                ids[i] = fid
-                taken.add(fid)
+        for k in np.lexsort((fid, group, distance, np.negative(shared))).tolist():
+            if ids[group[k]] < 0 and fid[k] not in taken:
+                ids[group[k]] = fid[k]
+                taken.add(fid[k])
         for i in np.flatnonzero(ids < 0):
             ids[i] = self._next_id
             self._next_id += 1
         return ids
 
-    def _distance(self, mean: np.ndarray, fid: int) -> float:
-        """Distance over dims from a fused mean (n,) to last step's fused track fid."""
-        last = self._last.means[int(np.searchsorted(self._last.ids, fid))]
-        d = mean - last
-        return float(np.linalg.norm(d if self.dims is None else d[self.dims]))
+    def _distances(self, means: np.ndarray, fids: list[int]) -> np.ndarray:
+        """Distances over dims from fused means (K, n) to last step's fused tracks fids."""
+        if not fids:  # also at the first step, before any fused track
+            return np.zeros(0)
+        d = means - self._last.means[np.searchsorted(self._last.ids, fids)]
+        return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
 
     # --- input checks, each naming the node and the argument or source ---
 
