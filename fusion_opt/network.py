@@ -50,7 +50,8 @@ class Tracker(Protocol):
 
 class Network:
     """Trackers {name: tracker} and processing nodes {name: ProcessingNode} whose sources
-    are names of either (module docstring)."""
+    are names of either (module docstring). `order` lists the processing nodes in the
+    order they step, each after its sources."""
 
     def __init__(self, trackers: Mapping[Hashable, Tracker],
                  processing: Mapping[Hashable, ProcessingNode]):
@@ -76,7 +77,7 @@ class Network:
             node = self.processing[name]
             reports = {s: out[s] for s in node.sources if s in out}
             if reports:
-                out[name] = node.step(reports, time)
+                out[name] = _processing_step(name, node, reports, time)
         return out
 
     def run(self, scan_series: Iterable[Mapping[Hashable, Any]],
@@ -92,6 +93,13 @@ class Network:
             for name, estimates in self.step(scans, None if times is None else times[t]).items():
                 series[name].append(estimates)
         return series
+
+
+def _processing_step(name, node, reports, time) -> Estimates:
+    try:
+        return node.step(reports, time)
+    except FusionInputError as exc:  # name the node as the network knows it
+        raise FusionInputError(f"processing node {name!r}: {exc}") from exc
 
 
 def _tracker_step(name, tracker, scan) -> Estimates:

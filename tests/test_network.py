@@ -210,6 +210,9 @@ def test_bad_steps_are_refused_by_name():
         net.step([fo.Estimates.empty(2)])
     with pytest.raises(fo.FusionInputError, match="tracker 'a' returned ndarray"):
         net.step({"a": np.zeros((1, 2))})
+    net.step({"a": fo.Estimates.empty(2)})
+    with pytest.raises(fo.FusionInputError, match=r"processing node 'f'.*n = 2 expected"):
+        net.step({"a": fo.Estimates.empty(3)})
 
 
 # --- the README's example runs as written ---
