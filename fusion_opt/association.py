@@ -1,95 +1,208 @@
-"""Grouping estimates from several nodes by target, at a processing node.
+"""Grouping estimates from several sources by target, at a processing node.
 
-Node k sends m_k estimates (means (m_k, n)). A group holds at most one estimate per node;
-every estimate lands in exactly one group (a singleton if nothing is close). Distances are
-Euclidean over the state components `dims` (default: all).
+Each source reports an `Estimates` (m_k estimates of one n-dimensional state). `associate`
+splits all of them into `Group`s: the estimates of one target, at most one per source;
+every estimate lands in exactly one group (alone if nothing is close). Two estimates are
+close when their distance over the state components `dims` (default: all),
+
+    d(a, b) = || a[dims] - b[dims] ||_2,
+
+is below `threshold`.
 
 - "nearest" (the paper's rule): repeatedly join the closest pair of estimates from two
-  different groups that share no node, while that distance is below the threshold
-  (single-linkage clustering with one estimate per node).
-- "assignment": node by node, an optimal assignment (scipy's linear_sum_assignment) of the
-  node's estimates to the groups so far, by distance to each group's centroid, gated by
-  the threshold; unassigned estimates open new groups.
+  different groups that share no source, while d < threshold (single-linkage clustering
+  with at most one estimate per source). Only pairs closer than the threshold are ever
+  looked at (a k-d tree finds them), so the cost grows with the close pairs, not with the
+  square of the number of estimates.
+- "assignment": source by source, in the order of `reports`, an optimal assignment
+  (scipy's linear_sum_assignment) of the source's estimates to the groups so far, by
+  distance to each group's centroid, gated by the threshold; an estimate left unassigned
+  opens a new group.
+
+A `Group` holds its members' sources, their track ids at those sources, and their means
+and covariances, so a processing node fuses it as it is and its (source, id) pairs name
+the source tracks it came from.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import numbers
+from collections.abc import Hashable, Mapping
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from .estimates import Estimates
 from .results import FusionInputError
 
-Group = list[tuple[int, int]]  # (node, estimate index) pairs
+METHODS = ("nearest", "assignment")
 
 
-def associate(means: Sequence, threshold: float, method: str = "nearest",
-              dims=None) -> list[Group]:
-    """Groups of (node, index) over the estimates means[k] (m_k, n) of each node k."""
-    points = _check(means, threshold, dims)
-    if method == "nearest":
-        return _nearest(points, threshold)
-    if method == "assignment":
-        return _assignment(points, threshold)
-    raise FusionInputError(f"method must be 'nearest' or 'assignment', got {method!r}")
+@dataclass(frozen=True, eq=False)
+class Group:
+    """The estimates of one target, k of them, at most one per source (made by `associate`
+    from validated reports; its arrays are read-only).
+
+    sources (k,): distinct source names, in the order of the reports;
+    ids (k,) int64: each member's track id at its source (ids of different sources may
+    coincide, which is why a group is not an `Estimates`);
+    means (k, n), covs (k, n, n): the members' estimates."""
+
+    sources: tuple[Hashable, ...]
+    ids: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+
+    def __post_init__(self):
+        for a in (self.ids, self.means, self.covs):
+            a.setflags(write=False)
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    @property
+    def pairs(self) -> tuple[tuple[Hashable, int], ...]:
+        """(source, source track id) of each member: the source tracks the group joins."""
+        return tuple(zip(self.sources, self.ids.tolist(), strict=True))
 
 
-def _check(means, threshold, dims) -> list[np.ndarray]:
-    if not np.isfinite(threshold) or threshold <= 0:
-        raise FusionInputError(f"threshold must be a positive finite distance, got {threshold}")
-    points = []
-    for k, m in enumerate(means):
-        m = np.asarray(m, dtype=float)
-        if m.size == 0:
-            m = m.reshape(0, m.shape[-1] if m.ndim == 2 else 0)
-        if m.ndim != 2:
-            raise FusionInputError(f"means of node {k} must have shape (m, n), got {m.shape}")
-        if not np.all(np.isfinite(m)):
-            raise FusionInputError(f"means of node {k} has a non-finite value")
-        points.append(m if dims is None or m.shape[0] == 0 else m[:, dims])
-    return points
-
-
-def _nearest(points, threshold) -> list[Group]:
-    labels = [(k, i) for k, p in enumerate(points) for i in range(len(p))]
-    if not labels:
+def associate(reports: Mapping[Hashable, Estimates], threshold: float,
+              method: str = "nearest", dims=None) -> list[Group]:
+    """Groups of the estimates in `reports` (source -> Estimates), by `method` (module
+    docstring); groups are ordered by their first member in the order of the reports."""
+    check_threshold(threshold)
+    check_method(method)
+    check_dims(dims)
+    names, reports = _check_reports(reports)
+    if not reports:
         return []
-    X = np.concatenate([p for p in points if len(p)])
-    node = np.array([k for k, _ in labels])
-    D = cdist(X, X)
-    D[node[:, None] == node[None, :]] = np.inf
-    group = np.arange(len(labels))
-    members = {g: {int(node[g])} for g in group}
-    for flat in np.argsort(D, axis=None):
-        a, b = np.unravel_index(flat, D.shape)
-        if D[a, b] >= threshold:
-            break
+    dims = check_dims(dims, reports[0].n)
+    owner = np.concatenate([np.full(len(r), k) for k, r in enumerate(reports)])
+    means = np.concatenate([r.means for r in reports])
+    points = means if dims is None else means[:, dims]
+    members = (_nearest if method == "nearest" else _assignment)(points, owner, threshold)
+    covs = np.concatenate([r.covs for r in reports])
+    ids = np.concatenate([r.ids for r in reports])
+    return [Group(tuple(names[k] for k in owner[idx]), ids[idx], means[idx], covs[idx])
+            for idx in members]
+
+
+def check_threshold(threshold) -> float:
+    if (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
+            or not np.isfinite(threshold) or threshold <= 0):
+        raise FusionInputError(f"threshold must be a positive finite distance, got {threshold!r}")
+    return float(threshold)
+
+
+def check_method(method) -> str:
+    if method not in METHODS:
+        raise FusionInputError(f"association method must be one of {METHODS}, got {method!r}")
+    return method
+
+
+def check_dims(dims, n: int | None = None) -> list[int] | None:
+    """dims: None (all components) or distinct integer components, each in [0, n)."""
+    if dims is None:
+        return None
+    if isinstance(dims, str | bytes) or not hasattr(dims, "__iter__"):
+        raise FusionInputError(f"dims must be a sequence of state components, got {dims!r}")
+    dims = list(dims)
+    if (not dims or any(isinstance(d, bool) or not isinstance(d, numbers.Integral) for d in dims)
+            or len(set(dims)) != len(dims)):
+        raise FusionInputError(f"dims must be distinct integer state components, got {dims!r}")
+    if any(d < 0 or (n is not None and d >= n) for d in dims):
+        raise FusionInputError(f"dims {dims} out of range for a state of dimension n = {n}")
+    return [int(d) for d in dims]
+
+
+def _check_reports(reports) -> tuple[list, list[Estimates]]:
+    """(names, Estimates) of the reports; every report an Estimates, all of one n."""
+    if not isinstance(reports, Mapping):
+        raise FusionInputError(f"reports must be a mapping source -> Estimates, got "
+                               f"{type(reports).__name__}")
+    for name, r in reports.items():
+        if not isinstance(r, Estimates):
+            raise FusionInputError(f"report of source {name!r} must be an Estimates, got "
+                                   f"{type(r).__name__}")
+    ns = {name: r.n for name, r in reports.items()}
+    if len(set(ns.values())) > 1:
+        raise FusionInputError(f"reports have different state dimensions n: {ns}")
+    return list(reports), list(reports.values())
+
+
+def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
+    """Single-linkage with one member per source: points (M, d), owner (M,) source index.
+
+    Joins never cross a connected component of the graph of close pairs, and a component
+    holding at most one estimate per source ends as one group whatever the order of its
+    joins; so only components with two estimates of one source are joined pair by pair."""
+    M = len(points)
+    if M == 0:
+        return []
+    pairs = cKDTree(points).query_pairs(threshold, output_type="ndarray")  # (P, 2), i < j
+    d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+    keep = (d < threshold) & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
+    pairs, d = pairs[keep], d[keep]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(M, M))
+    label = connected_components(graph, directed=False)[1]  # (M,) component of each point
+    conflicted = _repeats_a_source(label, owner)
+    inside = conflicted[pairs[:, 0]]
+    for members in _ordered_joins(pairs[inside], d[inside], owner, np.flatnonzero(conflicted)):
+        label[members] = M + members[0]  # a fresh label: components are numbered below M
+    order = np.argsort(label, kind="stable")  # stable: members stay in report order
+    groups = np.split(order, np.flatnonzero(np.diff(label[order])) + 1)
+    return sorted(groups, key=lambda g: g[0])
+
+
+def _repeats_a_source(label: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(M,) True for the points of components holding two estimates of one source."""
+    key = label * (owner.max() + 1) + owner  # (component, source)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return np.isin(label, label[counts[inverse] > 1])
+
+
+def _ordered_joins(pairs: np.ndarray, d: np.ndarray, owner: np.ndarray,
+                   points: np.ndarray) -> list[list[int]]:
+    """Join the closest pair (pairs (P, 2), distances d (P,)) of two groups sharing no
+    source, in order of distance, starting from the given points alone."""
+    group = {int(i): int(i) for i in points}
+    members = {int(i): [int(i)] for i in points}
+    sources = {int(i): {int(owner[i])} for i in points}
+    for a, b in pairs[np.lexsort((pairs[:, 1], pairs[:, 0], d))].tolist():
         ga, gb = group[a], group[b]
-        if ga == gb or members[ga] & members[gb]:
+        if ga == gb or sources[ga] & sources[gb]:
             continue
-        group[group == gb] = ga
-        members[ga] |= members.pop(gb)
-    return [[labels[j] for j in np.flatnonzero(group == g)] for g in np.unique(group)]
+        if len(members[ga]) < len(members[gb]):
+            ga, gb = gb, ga
+        for i in members[gb]:
+            group[i] = ga
+        members[ga] += members.pop(gb)
+        sources[ga] |= sources.pop(gb)
+    return [sorted(m) for m in members.values()]
 
 
-def _assignment(points, threshold) -> list[Group]:
-    groups: list[Group] = []
+def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
+    """Source by source, gated optimal assignment to the groups' centroids."""
+    groups: list[list[int]] = []
     centroids: list[np.ndarray] = []
-    for k, p in enumerate(points):
+    for k in np.unique(owner):
+        flat = np.flatnonzero(owner == k)
+        p = points[flat]
         rows = cols = np.array([], dtype=int)
-        if len(p) and groups:
+        if groups:
             cost = cdist(p, np.array(centroids))
-            gated = np.where(cost < threshold, cost, 1e6 * threshold)
-            rows, cols = linear_sum_assignment(gated)
+            rows, cols = linear_sum_assignment(np.where(cost < threshold, cost, 1e6 * threshold))
             ok = cost[rows, cols] < threshold
             rows, cols = rows[ok], cols[ok]
-        for i, g in zip(rows, cols, strict=True):
-            groups[g].append((k, int(i)))
-            n_g = len(groups[g])
-            centroids[g] = centroids[g] + (p[i] - centroids[g]) / n_g
+        for i, g in zip(rows.tolist(), cols.tolist(), strict=True):
+            groups[g].append(int(flat[i]))
+            centroids[g] = centroids[g] + (p[i] - centroids[g]) / len(groups[g])
         for i in sorted(set(range(len(p))) - set(rows.tolist())):
-            groups.append([(k, i)])
+            groups.append([int(flat[i])])
             centroids.append(p[i].copy())
-    return groups
+    return [np.array(g) for g in sorted(groups, key=min)]

@@ -1,52 +1,145 @@
-"""Association of estimates across nodes: hand-made cases for both rules."""
+"""Association of estimates across sources: hand-made cases for both rules, the groups'
+contents against the reports, a brute-force reference for "nearest", and bad input."""
+
+import itertools
 
 import numpy as np
 import pytest
 
 import fusion_opt as fo
-from fusion_opt.association import associate
 
 
-def _sets(groups):
-    return sorted(sorted(g) for g in groups)
+def _reports(*means, ids=None):
+    """Source k -> Estimates with means[k] (m_k, n), covariances k + 1 times I."""
+    out = {}
+    for k, m in enumerate(means):
+        m = np.asarray(m, dtype=float)
+        n = m.shape[1]
+        covs = np.broadcast_to((k + 1.0) * np.eye(n), (len(m), n, n))
+        out[f"s{k}"] = fo.Estimates(m, covs, None if ids is None else ids[k])
+    return out
+
+
+def _pairs(groups):
+    return sorted(sorted(g.pairs) for g in groups)
 
 
 @pytest.mark.parametrize("method", ["nearest", "assignment"])
-def test_two_targets_three_nodes(method):
-    means = [np.array([[0.0, 0.0], [5.0, 5.0]]),
-             np.array([[5.1, 4.9], [0.1, -0.1]]),
-             np.array([[0.05, 0.0]])]
-    groups = associate(means, threshold=1.0, method=method)
-    assert _sets(groups) == [[(0, 0), (1, 1), (2, 0)], [(0, 1), (1, 0)]]
+def test_two_targets_three_sources(method):
+    reports = _reports([[0.0, 0.0], [5.0, 5.0]], [[5.1, 4.9], [0.1, -0.1]], [[0.05, 0.0]])
+    groups = fo.associate(reports, threshold=1.0, method=method)
+    assert _pairs(groups) == [[("s0", 0), ("s1", 1), ("s2", 0)], [("s0", 1), ("s1", 0)]]
 
 
 @pytest.mark.parametrize("method", ["nearest", "assignment"])
-def test_far_estimates_stay_single_and_one_per_node(method):
-    means = [np.array([[0.0, 0.0], [0.3, 0.0]]), np.array([[10.0, 0.0]]), np.zeros((0, 2))]
-    groups = associate(means, threshold=1.0, method=method)
-    # the two close estimates come from the same node: they must not be joined
-    assert _sets(groups) == [[(0, 0)], [(0, 1)], [(1, 0)]]
+def test_groups_carry_the_members_estimates_and_source_ids(method):
+    rng = np.random.default_rng(0)
+    means = [rng.normal(size=(4, 3)) * 10 for _ in range(3)]
+    ids = [rng.choice(100, size=4, replace=False) for _ in range(3)]
+    reports = _reports(*means, ids=ids)
+    groups = fo.associate(reports, threshold=3.0, method=method)
+    seen = []
+    for g in groups:
+        assert len(g) == len(g.means) == len(g.covs) and len(set(g.sources)) == len(g)
+        assert list(g.sources) == sorted(g.sources)  # in the order of the reports
+        for (source, track), mean, cov in zip(g.pairs, g.means, g.covs, strict=True):
+            r = reports[source]
+            i = int(np.flatnonzero(r.ids == track)[0])
+            np.testing.assert_array_equal(mean, r.means[i])
+            np.testing.assert_array_equal(cov, r.covs[i])
+            seen.append((source, track))
+    assert sorted(seen) == sorted((s, int(i)) for s, r in reports.items() for i in r.ids)
+
+
+@pytest.mark.parametrize("method", ["nearest", "assignment"])
+def test_far_estimates_stay_single_and_one_per_source(method):
+    reports = _reports([[0.0, 0.0], [0.3, 0.0]], [[10.0, 0.0]])
+    reports["s2"] = fo.Estimates.empty(2)
+    groups = fo.associate(reports, threshold=1.0, method=method)
+    # the two close estimates come from the same source: they must not be joined
+    assert _pairs(groups) == [[("s0", 0)], [("s0", 1)], [("s1", 0)]]
 
 
 def test_nearest_takes_the_closest_pair_first():
-    means = [np.array([[0.0]]), np.array([[0.5]]), np.array([[0.45]])]
-    groups = associate(means, threshold=1.0, method="nearest")
-    assert _sets(groups) == [[(0, 0), (1, 0), (2, 0)]]
-    means = [np.array([[0.0]]), np.array([[0.5]]), np.array([[0.45]]), np.array([[0.52]])]
-    # nodes 1 and 3 are closest (0.02): joined; then 2 with them (0.05/0.07); then node 0
-    assert _sets(associate(means, threshold=1.0)) == [[(0, 0), (1, 0), (2, 0), (3, 0)]]
+    groups = fo.associate(_reports([[0.0]], [[0.5]], [[0.45]]), threshold=1.0)
+    assert _pairs(groups) == [[("s0", 0), ("s1", 0), ("s2", 0)]]
+    # s0's two estimates compete for s1's: the closer one (0.9) wins, 0.0 stays alone
+    groups = fo.associate(_reports([[0.0], [0.9]], [[0.5]]), threshold=1.0)
+    assert _pairs(groups) == [[("s0", 0)], [("s0", 1), ("s1", 0)]]
+
+
+def _nearest_brute(points, owner, threshold):
+    """Reference: join the closest admissible pair, recomputed from scratch each time."""
+    groups = [{i} for i in range(len(points))]
+    while True:
+        best = None
+        for a, b in itertools.combinations(range(len(groups)), 2):
+            if {owner[i] for i in groups[a]} & {owner[i] for i in groups[b]}:
+                continue
+            d = min(np.linalg.norm(points[i] - points[j]) for i in groups[a] for j in groups[b])
+            if d < threshold and (best is None or d < best[0]):
+                best = (d, a, b)
+        if best is None:
+            return sorted(sorted(g) for g in groups)
+        _, a, b = best
+        groups[a] |= groups.pop(b)
+
+
+def test_nearest_equals_brute_force_single_linkage():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        means = [rng.uniform(0, 4, size=(rng.integers(0, 5), 2)) for _ in range(4)]
+        reports = _reports(*means)
+        offsets = np.cumsum([0] + [len(m) for m in means])
+        flat = {(f"s{k}", i): offsets[k] + i for k, m in enumerate(means) for i in range(len(m))}
+        got = sorted(sorted(flat[p] for p in g.pairs) for g in fo.associate(reports, 1.0))
+        points = np.concatenate([m.reshape(-1, 2) for m in means])
+        owner = np.concatenate([np.full(len(m), k) for k, m in enumerate(means)])
+        assert got == _nearest_brute(points, owner, 1.0)
+
+
+def test_assignment_is_gated_optimal():
+    # s1's 0.6 is nearer to both of s0's; the assignment gives each its best overall match
+    groups = fo.associate(_reports([[0.0], [1.0]], [[0.6], [1.7]]), 1.0, "assignment")
+    assert _pairs(groups) == [[("s0", 0), ("s1", 0)], [("s0", 1), ("s1", 1)]]
+    groups = fo.associate(_reports([[0.0]], [[1.5]]), 1.0, "assignment")  # gated out
+    assert len(groups) == 2
 
 
 def test_dims_select_the_compared_components():
-    means = [np.array([[0.0, 0.0, 9.0]]), np.array([[0.1, 0.0, -9.0]])]
-    assert len(associate(means, 1.0)) == 2
-    assert len(associate(means, 1.0, dims=[0, 1])) == 1
+    reports = _reports([[0.0, 0.0, 9.0]], [[0.1, 0.0, -9.0]])
+    assert len(fo.associate(reports, 1.0)) == 2
+    assert len(fo.associate(reports, 1.0, dims=[0, 1])) == 1
 
 
-def test_bad_input():
-    with pytest.raises(fo.FusionInputError, match="threshold"):
-        associate([np.zeros((1, 2))], threshold=0.0)
-    with pytest.raises(fo.FusionInputError, match="method"):
-        associate([np.zeros((1, 2))], threshold=1.0, method="magic")
-    with pytest.raises(fo.FusionInputError, match="node 1"):
-        associate([np.zeros((1, 2)), np.array([[np.nan, 0.0]])], threshold=1.0)
+def test_no_reports_no_groups():
+    assert fo.associate({}, 1.0) == []
+    assert fo.associate({"a": fo.Estimates.empty(3)}, 1.0, "assignment") == []
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(threshold=0.0), "threshold"),
+    (dict(threshold="1"), "threshold"),
+    (dict(threshold=True), "threshold"),
+    (dict(threshold=np.inf), "threshold"),
+    (dict(threshold=1.0, method="magic"), "method"),
+    (dict(threshold=1.0, dims=[0, 2]), r"dims \[0, 2\] out of range .* n = 2"),
+    (dict(threshold=1.0, dims=[-1]), "dims"),
+    (dict(threshold=1.0, dims=[0.5]), "dims"),
+    (dict(threshold=1.0, dims="xy"), "dims"),
+    (dict(threshold=1.0, dims=[]), "dims"),
+])
+def test_bad_arguments_are_named(kwargs, match):
+    with pytest.raises(fo.FusionInputError, match=match):
+        fo.associate(_reports([[0.0, 0.0]], [[1.0, 0.0]]), **kwargs)
+
+
+def test_bad_reports_are_named():
+    with pytest.raises(fo.FusionInputError, match="mapping"):
+        fo.associate([np.zeros((1, 2))], 1.0)
+    with pytest.raises(fo.FusionInputError, match="source 'b'.*Estimates"):
+        fo.associate({"a": fo.Estimates.empty(2), "b": np.zeros((1, 2))}, 1.0)
+    reports = {"a": fo.Estimates(np.zeros((1, 2)), np.eye(2)[None]),
+               "b": fo.Estimates(np.zeros((1, 3)), np.eye(3)[None])}
+    with pytest.raises(fo.FusionInputError, match="different state dimensions.*'a': 2.*'b': 3"):
+        fo.associate(reports, 1.0)

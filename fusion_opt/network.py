@@ -1,0 +1,178 @@
+"""A network of monitoring nodes (trackers) and processing nodes, stepped together.
+
+    net = Network(trackers={"a": ta, "b": tb, "c": tc},
+                  processing={"f": ProcessingNode(["a", "b", "c"], threshold=1.0, ...)})
+    out = net.step({"a": scan_a, "b": scan_b, "c": scan_c})   # {name: Estimates}
+    series = net.run([scans_0, scans_1, ...])                  # {name: [Estimates, ...]}
+
+The tracker protocol: a tracker is any object with `.step(scan) -> Estimates`, where the
+scan is whatever that tracker reads (measurements (k, d), a list of detections, ...) and
+the Estimates are its tracks after the scan: means (m, n), covs (m, n, n), ids that
+persist while a track continues, and the tracker's own time. `KalmanFilter`, RBPF,
+RBMCDA, a Stone Soup adapter and a user's own filter all qualify; the network never looks
+inside a scan.
+
+A processing node's sources are names of trackers or of other processing nodes, so nodes
+may form a hierarchy; the sources of a node are stepped before it (a topological order,
+fixed at construction) and a cycle is refused. Each step:
+
+- a tracker steps only if `scans` holds its scan. A missing scan means nothing arrived
+  from that node (a silent node or a lost link): the tracker does not step and reports
+  nothing. A scan with no detection is not missing: pass the empty scan, the tracker
+  steps (predicts) and reports its tracks;
+- a processing node steps with the reports of those of its sources that reported; if
+  none did, it does not step and reports nothing either (its fused ids carry over to its
+  next step);
+- time: trackers stamp their own estimates; `time`, when given, is passed to every
+  processing node, which stamps its fused estimates with it; without it each processing
+  node takes the common time of its reports.
+
+`step` returns the Estimates of every node that reported; `run` returns each node's
+Estimates in step order (one per step at which it reported: one per step when every
+tracker has a scan at every step).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Iterable, Mapping, Sequence
+from typing import Any, Protocol
+
+from .estimates import Estimates
+from .processing import ProcessingNode
+from .results import FusionInputError
+
+
+class Tracker(Protocol):
+    """Anything with `.step(scan) -> Estimates`."""
+
+    def step(self, scan: Any) -> Estimates: ...
+
+
+class Network:
+    """Trackers {name: tracker} and processing nodes {name: ProcessingNode} whose sources
+    are names of either (module docstring). `order` lists the processing nodes in the
+    order they step, each after its sources."""
+
+    def __init__(self, trackers: Mapping[Hashable, Tracker],
+                 processing: Mapping[Hashable, ProcessingNode]):
+        self.trackers = _check_trackers(trackers)
+        self.processing = _check_processing(processing, self.trackers)
+        self.order = _topological_order(self.processing)
+
+    def step(self, scans: Mapping[Hashable, Any], time: float | None = None
+             ) -> dict[Hashable, Estimates]:
+        """The Estimates of every node that reported at this step (module docstring)."""
+        if not isinstance(scans, Mapping):
+            raise FusionInputError(f"scans must be a mapping tracker name -> scan, got "
+                                   f"{type(scans).__name__}")
+        unknown = [name for name in scans if name not in self.trackers]
+        if unknown:
+            raise FusionInputError(f"scans for unknown trackers {unknown}; the trackers are "
+                                   f"{list(self.trackers)}")
+        out = {}
+        for name, tracker in self.trackers.items():
+            if name in scans:
+                out[name] = _tracker_step(name, tracker, scans[name])
+        for name in self.order:
+            node = self.processing[name]
+            reports = {s: out[s] for s in node.sources if s in out}
+            if reports:
+                out[name] = _processing_step(name, node, reports, time)
+        return out
+
+    def run(self, scan_series: Iterable[Mapping[Hashable, Any]],
+            times: Sequence[float] | None = None) -> dict[Hashable, list[Estimates]]:
+        """`step` over scan_series (one mapping of scans per step), with times[t] as the
+        time of step t if given; each node's Estimates in step order."""
+        scan_series = list(scan_series)
+        if times is not None and len(times) != len(scan_series):
+            raise FusionInputError(f"times must have one entry per step ({len(scan_series)}), "
+                                   f"got {len(times)}")
+        series = {name: [] for name in (*self.trackers, *self.order)}
+        for t, scans in enumerate(scan_series):
+            for name, estimates in self.step(scans, None if times is None else times[t]).items():
+                series[name].append(estimates)
+        return series
+
+
+def _processing_step(name, node, reports, time) -> Estimates:
+    try:
+        return node.step(reports, time)
+    except FusionInputError as exc:  # name the node as the network knows it
+        raise FusionInputError(f"processing node {name!r}: {exc}") from exc
+
+
+def _tracker_step(name, tracker, scan) -> Estimates:
+    estimates = tracker.step(scan)
+    if not isinstance(estimates, Estimates):
+        raise FusionInputError(f"tracker {name!r} returned {type(estimates).__name__} from "
+                               f"step, not an Estimates")
+    return estimates
+
+
+def _check_trackers(trackers) -> dict:
+    if not isinstance(trackers, Mapping):
+        raise FusionInputError(f"trackers must be a mapping name -> tracker, got "
+                               f"{type(trackers).__name__}")
+    for name, tracker in trackers.items():
+        if not callable(getattr(tracker, "step", None)):
+            raise FusionInputError(f"tracker {name!r} has no step(scan) method")
+    _refuse_shared(trackers, "tracker")
+    return dict(trackers)
+
+
+def _check_processing(processing, trackers) -> dict:
+    if not isinstance(processing, Mapping):
+        raise FusionInputError(f"processing must be a mapping name -> ProcessingNode, got "
+                               f"{type(processing).__name__}")
+    both = [name for name in processing if name in trackers]
+    if both:
+        raise FusionInputError(f"names {both} are both trackers and processing nodes")
+    for name, node in processing.items():
+        if not isinstance(node, ProcessingNode):
+            raise FusionInputError(f"processing node {name!r} must be a ProcessingNode, got "
+                                   f"{type(node).__name__}")
+        unknown = [s for s in node.sources if s not in trackers and s not in processing]
+        if unknown:
+            raise FusionInputError(f"processing node {name!r} has sources {unknown} that are "
+                                   f"neither trackers nor processing nodes")
+    _refuse_shared(processing, "processing node")
+    return dict(processing)
+
+
+def _refuse_shared(nodes: Mapping, kind: str) -> None:
+    """One object under two names would be stepped twice per step: refused."""
+    names_of = {}
+    for name, obj in nodes.items():
+        names_of.setdefault(id(obj), []).append(name)
+    shared = [names for names in names_of.values() if len(names) > 1]
+    if shared:
+        raise FusionInputError(f"one {kind} object is registered under several names: "
+                               f"{shared[0]}")
+
+
+def _topological_order(processing: dict) -> list:
+    """Processing node names, each after its processing-node sources; a cycle refused,
+    naming its nodes in order (depth-first search)."""
+    order, state = [], {}  # state: "open" on the current path, "done" when ordered
+    path: list = []
+
+    def visit(name):
+        if state.get(name) == "done":
+            return
+        if state.get(name) == "open":
+            cycle = path[path.index(name):] + [name]
+            raise FusionInputError(f"processing nodes form a cycle, each a source of the one "
+                                   f"before it: {' -> '.join(map(repr, cycle))}")
+        state[name] = "open"
+        path.append(name)
+        for s in processing[name].sources:
+            if s in processing:
+                visit(s)
+        path.pop()
+        state[name] = "done"
+        order.append(name)
+
+    for name in processing:
+        visit(name)
+    return order

@@ -1,0 +1,266 @@
+"""A processing node: associate its sources' estimates, fuse each group, keep fused ids.
+
+    node = ProcessingNode(["a", "b", "c"], method="mbci", threshold=1.0,
+                          p_detect={"a": 0.9, "b": 0.7, "c": 0.8}, growth=1.01)
+    fused = node.step({"a": est_a, "b": est_b, "c": est_c})     # -> Estimates
+
+Each step:
+1. associate the reports (`fusion_opt.association`: "nearest" or "assignment", under
+   `threshold`, over the state components `dims`) into groups of at most one estimate
+   per source;
+2. drop the groups of fewer than `min_sources` sources, pass a group of one on as it is,
+   and fuse every group of two or more with `method` (any rule of `fo.fuse` that needs no
+   cross-covariance); all the groups of one size go to ONE `fo.fuse_batch` call. MBCI
+   scales each member's information by the product over the group's own sources,
+       s_i = p_i + (1 - p_i) chi prod_{j in group, j != i} (p_j + (1 - p_j) chi);
+3. give each fused track an id: a group inherits the id of the previous step's fused
+   track with which it shares the most (source, source track id) pairs, ties going to the
+   nearer one over `dims`; greedily, largest overlap first, so an id goes to at most one
+   group; a group sharing no pair with a free id gets a new id, never reused (until
+   `reset`). So a target keeps its fused id while any of its source tracks continues:
+   through a missed report at one source and when one source restarts its track.
+
+A source whose report is missing contributes nothing that step. The fused `Estimates`
+are ordered by id, stamped `node=name` and with `time`: the step's `time` if given, else
+the common time of the reports (reports of different times are refused: pass `time=`
+to fuse them anyway). `groups` holds the last step's groups by fused id: which source
+tracks each fused track came from.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections import Counter, defaultdict
+from collections.abc import Hashable, Mapping
+
+import numpy as np
+
+from .association import Group, associate, check_dims, check_method, check_threshold
+from .backends import BACKENDS
+from .batch import fuse_batch
+from .estimates import Estimates
+from .results import FusionInputError
+
+FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
+PAIRWISE = ("ci", "ici", "ei")
+CRITERIA = ("trace", "logdet")
+
+
+class ProcessingNode:
+    """Fuses the estimates of `sources` (source names) step by step (module docstring).
+
+    method, criterion, backend: as in `fo.fuse_batch` ("known-cross" is not offered: a
+    processing node does not know the cross-covariances of its sources);
+    association ("nearest" | "assignment"), threshold (> 0), dims (state components
+    compared; None: all): as in `fo.associate`;
+    p_detect: {source: detection probability in [0, 1]} for every source, for "mbci" only;
+    chi in (0, 1] or growth = 1 / chi >= 1 (the paper's chi^-1): at most one, "mbci" only,
+    default chi = 1.0 (MBCI then equals BCI);
+    min_sources: groups of fewer sources are dropped (1 passes single estimates on);
+    name: stamped on the fused Estimates as `node` and named in errors."""
+
+    def __init__(self, sources, *, method="mbci", criterion="trace", backend="newton",
+                 association="nearest", threshold, dims=None, p_detect=None, chi=None,
+                 growth=None, min_sources=1, name=None):
+        self.name = _check_name(name)
+        self.sources = self._check_sources(sources)
+        self.method = self._check_method(method)
+        self.criterion = self._check_choice("criterion", criterion, CRITERIA)
+        self.backend = self._check_choice("backend", backend, BACKENDS)
+        self.association = check_method(association)
+        self.threshold = check_threshold(threshold)
+        self.dims = check_dims(dims)
+        self.p_detect, self.chi = self._check_detection(p_detect, chi, growth)
+        self.min_sources = self._check_min_sources(min_sources)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the fused tracks and restart ids at 0, as newly built."""
+        self.groups: dict[int, Group] = {}
+        self._last: Estimates | None = None
+        self._next_id = 0
+        self._n: int | None = None
+
+    def step(self, reports: Mapping[Hashable, Estimates], time: float | None = None
+             ) -> Estimates:
+        """Fused estimates of this step from reports {source: Estimates} (module docstring)."""
+        reports = self._check_reports(reports)
+        time = self._time(reports, time)
+        groups = [g for g in associate(reports, self.threshold, self.association, self.dims)
+                  if len(g) >= self.min_sources]
+        means, covs = self._fuse(groups)
+        ids = self._ids(groups, means)
+        order = np.argsort(ids, kind="stable")
+        fused = Estimates(means[order], covs[order], ids[order], time, self.name)
+        self.groups = {int(ids[i]): groups[i] for i in order}
+        self._last = fused
+        return fused
+
+    def _fuse(self, groups: list[Group]) -> tuple[np.ndarray, np.ndarray]:
+        """Fused means (G, n) and covs (G, n, n): one fuse_batch call per group size."""
+        n = self._n
+        means, covs = np.empty((len(groups), n)), np.empty((len(groups), n, n))
+        by_size = defaultdict(list)
+        for i, g in enumerate(groups):
+            by_size[len(g)].append(i)
+        for size, idx in by_size.items():
+            M = np.stack([groups[i].means for i in idx])  # (B, size, n)
+            C = np.stack([groups[i].covs for i in idx])  # (B, size, n, n)
+            if size == 1:
+                means[idx], covs[idx] = M[:, 0], C[:, 0]
+                continue
+            extra = {}
+            if self.method == "mbci":
+                p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
+                extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
+            r = fuse_batch(M, C, self.method, self.criterion, self.backend, **extra)
+            means[idx], covs[idx] = r.mean, r.cov
+        return means, covs
+
+    def _ids(self, groups: list[Group], means: np.ndarray) -> np.ndarray:
+        """Fused track ids (G,): inherited by shared (source, track id) pairs, else new."""
+        previous = {pair: fid for fid, g in self.groups.items() for pair in g.pairs}
+        group, fid, shared = [], [], []  # one entry per (group, previous track) sharing pairs
+        for i, g in enumerate(groups):
+            for f, count in Counter(previous[p] for p in g.pairs if p in previous).items():
+                group.append(i)
+                fid.append(f)
+                shared.append(count)
+        distance = self._distances(means[group], fid)
+        ids = np.full(len(groups), -1, dtype=np.int64)
+        taken = set()
+        for k in np.lexsort((fid, group, distance, np.negative(shared))).tolist():
+            if ids[group[k]] < 0 and fid[k] not in taken:
+                ids[group[k]] = fid[k]
+                taken.add(fid[k])
+        for i in np.flatnonzero(ids < 0):
+            ids[i] = self._next_id
+            self._next_id += 1
+        return ids
+
+    def _distances(self, means: np.ndarray, fids: list[int]) -> np.ndarray:
+        """Distances over dims from fused means (K, n) to last step's fused tracks fids."""
+        if not fids:  # also at the first step, before any fused track
+            return np.zeros(0)
+        d = means - self._last.means[np.searchsorted(self._last.ids, fids)]
+        return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
+
+    # --- input checks, each naming the node and the argument or source ---
+
+    def _err(self, message: str) -> FusionInputError:
+        where = "ProcessingNode" if self.name is None else f"ProcessingNode {self.name!r}"
+        return FusionInputError(f"{where}: {message}")
+
+    def _check_sources(self, sources) -> tuple:
+        if isinstance(sources, str | bytes | Mapping) or not hasattr(sources, "__iter__"):
+            raise self._err(f"sources must be a sequence of source names, got {sources!r}")
+        sources = tuple(sources)
+        if not sources:
+            raise self._err("sources is empty: a processing node needs at least one source")
+        bad = [s for s in sources if not isinstance(s, Hashable)]
+        if bad:
+            raise self._err(f"sources must be hashable names, got {bad!r}")
+        repeated = sorted({repr(s) for s in sources if sources.count(s) > 1})
+        if repeated:
+            raise self._err(f"sources are listed more than once: {', '.join(repeated)}")
+        return sources
+
+    def _check_method(self, method) -> str:
+        if method == "known-cross":
+            raise self._err("method 'known-cross' needs the sources' cross-covariances, "
+                            "which a processing node does not have")
+        self._check_choice("method", method, FUSE_METHODS)
+        if method in PAIRWISE and len(self.sources) > 2:
+            raise self._err(f"method {method!r} fuses pairs, but {len(self.sources)} sources "
+                            f"can form larger groups: use 'bci' or 'mbci'")
+        return method
+
+    def _check_choice(self, name: str, value, choices) -> str:
+        if value not in choices:
+            raise self._err(f"{name} must be one of {tuple(choices)}, got {value!r}")
+        return value
+
+    def _check_detection(self, p_detect, chi, growth) -> tuple[dict | None, float | None]:
+        """({source: p}, chi) for "mbci"; (None, None) otherwise."""
+        if self.method != "mbci":
+            given = [k for k, v in (("p_detect", p_detect), ("chi", chi), ("growth", growth))
+                     if v is not None]
+            if given:
+                raise self._err(f"{' and '.join(given)} apply to method 'mbci', not "
+                                f"{self.method!r}")
+            return None, None
+        if not isinstance(p_detect, Mapping):
+            raise self._err(f"method 'mbci' needs p_detect, a mapping source -> detection "
+                            f"probability, got {p_detect!r}")
+        missing = [s for s in self.sources if s not in p_detect]
+        unknown = [s for s in p_detect if s not in self.sources]
+        if missing or unknown:
+            raise self._err(f"p_detect must name exactly the sources: missing {missing}, "
+                            f"unknown {unknown}")
+        for s in self.sources:
+            if not _real(p_detect[s]) or not 0.0 <= p_detect[s] <= 1.0:
+                raise self._err(f"p_detect of source {s!r} must be in [0, 1], got "
+                                f"{p_detect[s]!r}")
+        if chi is not None and growth is not None:
+            raise self._err("give chi or growth (= 1 / chi), not both")
+        if growth is not None:
+            if not _real(growth) or not 1.0 <= growth < np.inf:
+                raise self._err(f"growth must be a finite number >= 1, got {growth!r}")
+            chi = 1.0 / growth
+        chi = 1.0 if chi is None else chi
+        if not _real(chi) or not 0.0 < chi <= 1.0:
+            raise self._err(f"chi must be in (0, 1], got {chi!r}")
+        return {s: float(p_detect[s]) for s in self.sources}, float(chi)
+
+    def _check_min_sources(self, min_sources) -> int:
+        if (isinstance(min_sources, bool) or not isinstance(min_sources, numbers.Integral)
+                or not 1 <= min_sources <= len(self.sources)):
+            raise self._err(f"min_sources must be an integer in [1, {len(self.sources)}] "
+                            f"(the number of sources), got {min_sources!r}")
+        return int(min_sources)
+
+    def _check_reports(self, reports) -> dict[Hashable, Estimates]:
+        """The reports in the order of `sources`; unknown sources, non-Estimates and
+        another state dimension refused by name. Sets the node's n at the first report."""
+        if not isinstance(reports, Mapping):
+            raise self._err(f"reports must be a mapping source -> Estimates, got "
+                            f"{type(reports).__name__}")
+        unknown = [s for s in reports if s not in self.sources]
+        if unknown:
+            raise self._err(f"reports from unknown sources {unknown}; its sources are "
+                            f"{list(self.sources)}")
+        ordered = {s: reports[s] for s in self.sources if s in reports}
+        for s, r in ordered.items():
+            if not isinstance(r, Estimates):
+                raise self._err(f"report of source {s!r} must be an Estimates, got "
+                                f"{type(r).__name__}")
+        ns = {s: r.n for s, r in ordered.items()}
+        n = self._n if self._n is not None else next(iter(ns.values()), None)
+        other = {s: k for s, k in ns.items() if k != n}
+        if other:
+            raise self._err(f"estimates of state dimension n = {n} expected, got {other} "
+                            f"from sources {list(other)}")
+        if n is None:
+            raise self._err("no reports at its first step: the state dimension is unknown")
+        check_dims(self.dims, n)
+        self._n = n
+        return ordered
+
+    def _time(self, reports: dict[Hashable, Estimates], time) -> float | None:
+        if time is not None:
+            return time  # validated by Estimates
+        times = {s: r.time for s, r in reports.items() if r.time is not None}
+        if len(set(times.values())) > 1:
+            raise self._err(f"reports carry different times {times}; pass time= to stamp "
+                            f"the fused estimates")
+        return next(iter(times.values()), None)
+
+
+def _check_name(name):
+    if name is not None and not isinstance(name, Hashable):
+        raise FusionInputError(f"ProcessingNode: name must be hashable, got {name!r}")
+    return name
+
+
+def _real(x) -> bool:
+    return not isinstance(x, bool) and isinstance(x, numbers.Real) and bool(np.isfinite(x))

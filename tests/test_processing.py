@@ -1,0 +1,311 @@
+"""ProcessingNode: fused tracks against fo.fuse on their groups, persistent fused ids,
+time, batching by group size, and bad input named."""
+
+import numpy as np
+import pytest
+from conftest import random_spd
+
+import fusion_opt as fo
+import fusion_opt.processing as processing
+
+P_DETECT = {"a": 0.9, "b": 0.7, "c": 0.8, "d": 0.95}
+
+
+def _scene(rng, sources, n_targets, n=4, spacing=20.0, p_seen=0.8, noise=0.3):
+    """{source: Estimates}: each source sees each target with probability p_seen, with
+    a random covariance and random unique track ids; targets `spacing` apart."""
+    truth = spacing * np.arange(n_targets)[:, None] * np.ones(n)
+    reports = {}
+    for s in sources:
+        seen = np.flatnonzero(rng.random(n_targets) < p_seen)
+        means = truth[seen] + noise * rng.standard_normal((len(seen), n))
+        covs = np.array([random_spd(rng, n) for _ in seen]).reshape(len(seen), n, n)
+        ids = rng.choice(1000, size=len(seen), replace=False)
+        reports[s] = fo.Estimates(means, covs, ids)
+    return reports
+
+
+def _check_against_fuse(node, reports, fused, method_args):
+    """Every fused track is fo.fuse (Clarabel) on its group; singletons unchanged."""
+    assert sorted(sorted(g.pairs) for g in node.groups.values()) == sorted(
+        sorted(g.pairs) for g in fo.associate(reports, node.threshold, node.association,
+                                              node.dims) if len(g) >= node.min_sources)
+    assert fused.ids.tolist() == sorted(node.groups)
+    for fid, mean, cov in zip(fused.ids, fused.means, fused.covs, strict=True):
+        g = node.groups[int(fid)]
+        if len(g) == 1:
+            np.testing.assert_array_equal(mean, g.means[0])
+            np.testing.assert_array_equal(cov, g.covs[0])
+            continue
+        args = method_args(g)
+        ref = fo.fuse(g.means, g.covs, node.method, node.criterion, backend="clarabel", **args)
+        np.testing.assert_allclose(mean, ref.mean, rtol=1e-9, atol=1e-9 * np.abs(ref.mean).max())
+        np.testing.assert_allclose(cov, ref.cov, rtol=1e-9, atol=1e-9 * np.abs(ref.cov).max())
+
+
+@pytest.mark.parametrize("method, criterion", [
+    ("bci", "trace"), ("bci", "logdet"), ("mbci", "trace"), ("mbci", "logdet"),
+    ("naive", "trace"), ("fast-ci", "trace"), ("ifci", "trace")])
+def test_fused_tracks_equal_fuse_on_their_groups(method, criterion):
+    rng = np.random.default_rng(10)
+    kw = dict(p_detect=P_DETECT, growth=1.2) if method == "mbci" else {}
+    node = fo.ProcessingNode(list(P_DETECT), method=method, criterion=criterion,
+                             threshold=3.0, **kw)
+
+    def method_args(g):
+        if method != "mbci":
+            return {}
+        return dict(p_detect=[P_DETECT[s] for s in g.sources], chi=1 / 1.2)
+
+    sizes = set()
+    for _ in range(4):
+        reports = _scene(rng, P_DETECT, n_targets=6)
+        fused = node.step(reports)
+        _check_against_fuse(node, reports, fused, method_args)
+        sizes |= {len(g) for g in node.groups.values()}
+    assert sizes == {1, 2, 3, 4}  # every group size was exercised
+
+
+@pytest.mark.parametrize("method", ["ci", "ici", "ei"])
+def test_pairwise_methods_with_two_sources(method):
+    rng = np.random.default_rng(11)
+    node = fo.ProcessingNode(["a", "b"], method=method, threshold=3.0, backend="clarabel")
+    reports = _scene(rng, ["a", "b"], n_targets=5)
+    _check_against_fuse(node, reports, node.step(reports), lambda g: {})
+
+
+def test_min_sources_drops_small_groups_and_assignment_association():
+    rng = np.random.default_rng(12)
+    node = fo.ProcessingNode(list(P_DETECT), method="bci", association="assignment",
+                             threshold=3.0, min_sources=3, dims=[0, 1])
+    reports = _scene(rng, P_DETECT, n_targets=8)
+    fused = node.step(reports)
+    assert {len(g) for g in node.groups.values()} <= {3, 4} and len(fused) > 0
+    _check_against_fuse(node, reports, fused, lambda g: {})
+
+
+def test_mbci_uses_the_detection_of_the_sources_fused():
+    # equal p and chi in a group of two: the BCI covariance inflated by 1/s (DESIGN §1)
+    est = {s: fo.Estimates([[0.0, 0.0]], [np.diag([1.0, 2.0]) * (k + 1)], [7])
+           for k, s in enumerate("abc")}
+    node = fo.ProcessingNode(["a", "b", "c"], p_detect={"a": 0.6, "b": 0.6, "c": 0.1},
+                             chi=0.5, threshold=1.0)
+    fused = node.step({"a": est["a"], "b": est["b"]})
+    s = 0.6 + 0.4 * 0.5 * (0.6 + 0.4 * 0.5)  # the product runs over a and b, not c
+    bci = fo.bci(np.zeros((2, 2)), np.stack([est["a"].covs[0], est["b"].covs[0]]))
+    np.testing.assert_allclose(fused.covs[0], bci.cov / s, rtol=1e-9)
+
+
+def test_groups_of_one_size_are_fused_in_one_batch(monkeypatch):
+    calls = []
+
+    def counting(means, *args, **kwargs):
+        calls.append(means.shape[:2])
+        return fo.fuse_batch(means, *args, **kwargs)
+
+    monkeypatch.setattr(processing, "fuse_batch", counting)
+    rng = np.random.default_rng(13)
+    node = fo.ProcessingNode(list(P_DETECT), threshold=3.0, p_detect=P_DETECT)
+    node.step(_scene(rng, P_DETECT, n_targets=30))
+    sizes = [len(g) for g in node.groups.values()]
+    assert sorted(N for _, N in calls) == sorted({k for k in sizes if k > 1})
+    assert all(B == sizes.count(N) for B, N in calls)
+
+
+# --- fused ids over time ---
+
+def _two_targets(t):
+    """Two well-separated targets (2,) moving in parallel at step t."""
+    return np.array([[0.1 * t, 0.0], [0.1 * t, 50.0]])
+
+
+def _report(rng, truth, ids, noise=0.2):
+    return fo.Estimates(truth + noise * rng.standard_normal(truth.shape),
+                        np.broadcast_to(noise**2 * np.eye(2), (len(truth), 2, 2)), ids)
+
+
+def _fused_ids_over(steps, node):
+    """Per step, the fused ids; asserts exactly one fused track near each target."""
+    out = []
+    for t, reports in steps:
+        fused = node.step(reports, time=float(t))
+        truth = _two_targets(t)
+        near = [int(fused.ids[np.argmin(np.linalg.norm(fused.means - x, axis=1))])
+                for x in truth]
+        assert len(fused) == 2 and len(set(near)) == 2
+        out.append(near)
+    return np.array(out)  # (T, 2): fused id of target 0 and target 1
+
+
+def _steps(rng, T=50, miss=None, restart=None):
+    """Three sources, two targets; source c's report is missing at steps in `miss`;
+    source b's track of target 0 is renumbered from step `restart` on."""
+    for t in range(T):
+        truth = _two_targets(t)
+        b_ids = [11 if restart is None or t < restart else 99, 12]
+        reports = {"a": _report(rng, truth, [1, 2]),
+                   "b": _report(rng, truth[::-1], b_ids[::-1]),  # another order, other ids
+                   "c": _report(rng, truth, [5, 3])}
+        if miss is not None and t in miss:
+            del reports["c"]
+        yield t, reports
+
+
+@pytest.mark.parametrize("association", ["nearest", "assignment"])
+@pytest.mark.parametrize("case", ["plain", "missing reports", "a missed target",
+                                  "restarted track"])
+def test_two_targets_three_sources_keep_two_fused_ids(case, association):
+    rng = np.random.default_rng(14)
+    node = fo.ProcessingNode(["a", "b", "c"], method="bci", threshold=5.0,
+                             association=association)
+    if case == "plain":
+        steps = _steps(rng)
+    elif case == "missing reports":
+        steps = _steps(rng, miss=set(range(10, 50, 3)))
+    elif case == "restarted track":
+        steps = _steps(rng, restart=25)
+    else:  # source a misses target 0 at some steps: its report holds target 1 only
+        steps = ((t, r | {"a": r["a"].take([1])} if t % 4 == 1 else r)
+                 for t, r in _steps(rng))
+    ids = _fused_ids_over(steps, node)
+    assert len(np.unique(ids)) == 2
+    assert (ids == ids[0]).all()
+
+
+def test_all_sources_of_a_target_restart_gives_a_new_id():
+    rng = np.random.default_rng(15)
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=5.0)
+    truth = _two_targets(0)[:1]
+    first = node.step({"a": _report(rng, truth, [1]), "b": _report(rng, truth, [2])})
+    again = node.step({"a": _report(rng, truth, [1]), "b": _report(rng, truth, [2])})
+    new = node.step({"a": _report(rng, truth, [3]), "b": _report(rng, truth, [4])})
+    assert first.ids.tolist() == again.ids.tolist() == [0]
+    assert new.ids.tolist() == [1]  # nothing shared: a new id, 0 is never reused
+    node.reset()
+    assert node.step({"a": _report(rng, truth, [3])}).ids.tolist() == [0]
+
+
+def test_an_id_goes_to_the_group_sharing_most_then_to_the_nearest():
+    rng = np.random.default_rng(16)
+    node = fo.ProcessingNode(["a", "b", "c"], method="bci", threshold=5.0)
+    x = np.array([[0.0, 0.0]])
+    node.step({s: _report(rng, x, [1]) for s in "abc"})  # fused id 0 from a1, b1, c1
+    # now a1 sits apart from b1 and c1: the group {b1, c1} shares two pairs, a1 one
+    far = np.array([[20.0, 0.0]])
+    fused = node.step({"a": _report(rng, far, [1]), "b": _report(rng, x, [1]),
+                       "c": _report(rng, x, [1])})
+    assert node.groups[0].pairs == (("b", 1), ("c", 1))
+    assert node.groups[1].pairs == (("a", 1),) and fused.ids.tolist() == [0, 1]
+    # a tie (one pair each): the nearer group, over dims, keeps the id
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=5.0, dims=[0])
+    node.step({"a": _report(rng, x, [1]), "b": _report(rng, x, [1])})
+    node.step({"a": _report(rng, np.array([[30.0, 0.0]]), [1]),
+               "b": _report(rng, np.array([[-10.0, 99.0]]), [1])})
+    assert node.groups[0].pairs == (("b", 1),)
+
+
+def test_crossing_targets_switch_ids_at_most_at_the_crossing():
+    """Two targets cross at step 25; with the assignment association the fused ids may
+    swap only while the targets are within the threshold of each other."""
+    rng = np.random.default_rng(17)
+    threshold = 1.5
+    node = fo.ProcessingNode(["a", "b", "c"], method="bci", association="assignment",
+                             threshold=threshold)
+    switches, near_steps = [], []
+    previous = None
+    for t in range(50):
+        s = (t - 25) / 25
+        truth = np.array([[10 * s, 5 * s], [10 * s, -5 * s]])
+        reports = {k: _report(rng, truth, [10 * j + 1, 10 * j + 2])
+                   for j, k in enumerate("abc")}
+        fused = node.step(reports)
+        nearest = [int(fused.ids[np.argmin(np.linalg.norm(fused.means - x, axis=1))])
+                   for x in truth]
+        if previous is not None and nearest != previous:
+            switches.append(t)
+        previous = nearest
+        if np.linalg.norm(truth[0] - truth[1]) < 2 * threshold:
+            near_steps.append(t)
+    print(f"crossing: fused id switches at steps {switches}; targets within 2 x threshold "
+          f"at steps {near_steps}")
+    assert len(switches) <= 2
+    assert all(min(near_steps) <= t <= max(near_steps) + 1 for t in switches)
+
+
+# --- time ---
+
+def test_time_is_the_given_one_or_the_reports_common_time():
+    e = fo.Estimates([[0.0]], [[[1.0]]], time=2.0)
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0, name="p")
+    assert node.step({"a": e, "b": e}).time == 2.0
+    assert node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]])}).time == 2.0
+    assert node.step({"a": e}, time=5).time == 5.0
+    out = node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]], time=3.0)}, time=3.0)
+    assert out.time == 3.0 and out.node == "p"
+    with pytest.raises(fo.FusionInputError, match="'p'.*different times.*time="):
+        node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]], time=3.0)})
+
+
+def test_no_reports_gives_no_estimates_once_n_is_known():
+    node = fo.ProcessingNode(["a"], method="bci", threshold=1.0, name="p")
+    with pytest.raises(fo.FusionInputError, match="'p'.*dimension is unknown"):
+        node.step({})
+    node.step({"a": fo.Estimates.empty(3)})
+    assert len(node.step({})) == 0 and node.step({}).n == 3
+
+
+# --- bad input, each named ---
+
+GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
+
+
+@pytest.mark.parametrize("sources, kwargs, match", [
+    ("ab", {}, "sources must be a sequence"),
+    ([], {}, "sources is empty"),
+    (["a", "a"], {}, "more than once: 'a'"),
+    (["a", ["b"]], {}, "hashable"),
+    (["a", "b"], dict(method="magic"), "method must be one of"),
+    (["a", "b"], dict(method="known-cross"), "cross-covariances"),
+    (["a", "b", "c"], dict(method="ci", p_detect=None), "'ci' fuses pairs.*3 sources"),
+    (["a", "b"], dict(criterion="max"), "criterion"),
+    (["a", "b"], dict(backend="magic"), "backend"),
+    (["a", "b"], dict(association="magic"), "association method"),
+    (["a", "b"], dict(threshold="1"), "threshold"),
+    (["a", "b"], dict(threshold=-1.0), "threshold"),
+    (["a", "b"], dict(dims=[1.5]), "dims"),
+    (["a", "b"], dict(p_detect=None), "needs p_detect"),
+    (["a", "b"], dict(p_detect={"a": 0.9}), r"missing \['b'\]"),
+    (["a", "b"], dict(p_detect={"a": 0.9, "b": 0.8, "z": 1.0}), r"unknown \['z'\]"),
+    (["a", "b"], dict(p_detect={"a": 0.9, "b": 1.5}), "p_detect of source 'b'"),
+    (["a", "b"], dict(p_detect={"a": 0.9, "b": "x"}), "p_detect of source 'b'"),
+    (["a", "b"], dict(chi=0.9, growth=1.1), "not both"),
+    (["a", "b"], dict(chi=0.0), "chi"),
+    (["a", "b"], dict(growth=0.5), "growth"),
+    (["a", "b"], dict(method="bci", p_detect={"a": 1, "b": 1}), "p_detect apply to.*mbci"),
+    (["a", "b"], dict(method="bci", p_detect=None, chi=0.5), "chi apply to.*mbci"),
+    (["a", "b"], dict(min_sources=3), r"min_sources must be an integer in \[1, 2\]"),
+    (["a", "b"], dict(min_sources=1.0), "min_sources"),
+    (["a", "b"], dict(name=["x"]), "name"),
+])
+def test_bad_construction_is_named(sources, kwargs, match):
+    with pytest.raises(fo.FusionInputError, match=match):
+        fo.ProcessingNode(sources, **(GOOD | kwargs))
+
+
+def test_bad_reports_are_named():
+    node = fo.ProcessingNode(["a", "b"], name="p", dims=[2], **GOOD)
+    e3 = fo.Estimates(np.zeros((1, 3)), np.eye(3)[None])
+    with pytest.raises(fo.FusionInputError, match=r"'p'.*unknown sources \['z'\]"):
+        node.step({"a": e3, "z": e3})
+    with pytest.raises(fo.FusionInputError, match="'p'.*mapping"):
+        node.step([e3])
+    with pytest.raises(fo.FusionInputError, match="'p'.*source 'b' must be an Estimates"):
+        node.step({"a": e3, "b": np.zeros((1, 3))})
+    with pytest.raises(fo.FusionInputError, match=r"'p'.*n = 3 expected.*\['b'\]"):
+        node.step({"a": e3, "b": fo.Estimates(np.zeros((1, 4)), np.eye(4)[None])})
+    node.step({"a": e3})
+    with pytest.raises(fo.FusionInputError, match=r"'p'.*n = 3 expected.*\['a'\]"):
+        node.step({"a": fo.Estimates(np.zeros((1, 4)), np.eye(4)[None])})
+    low = fo.ProcessingNode(["a", "b"], dims=[2], **GOOD)
+    with pytest.raises(fo.FusionInputError, match=r"dims \[2\] out of range .* n = 2"):
+        low.step({"a": fo.Estimates(np.zeros((1, 2)), np.eye(2)[None])})
