@@ -23,7 +23,7 @@ import numpy as np
 
 from . import criteria
 from .backends import EXACT, REGISTRY, closed_form, newton
-from .fusion import _check_backend, _polish, information
+from .fusion import _check_backend, _polish, fuse_rule, information
 from .mbci import detection_scales
 from .results import BatchFusionResult, FusionInputError
 from .rules import RULES
@@ -142,7 +142,7 @@ def _rule(means, covs, method, criterion, cross) -> BatchFusionResult:
                                  np.zeros(B), "closed-form", time.perf_counter() - t0,
                                  method, criterion)
     extra = [{} if cross is None else {"cross": cross[b]} for b in range(B)]
-    rs = [RULES[method](means[b], covs[b], criterion, **extra[b]) for b in range(B)]
+    rs = [fuse_rule(means[b], covs[b], method, criterion, **extra[b]) for b in range(B)]
     return BatchFusionResult(
         np.array([r.weights for r in rs]), np.array([r.mean for r in rs]),
         np.array([r.cov for r in rs]), np.array([r.objective for r in rs]), np.zeros(B),

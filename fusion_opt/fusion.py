@@ -23,7 +23,7 @@ from . import criteria
 from .backends import EXACT, REGISTRY, newton
 from .mbci import detection_scales
 from .results import FusionInputError, FusionResult, FusionSolverError
-from .rules import RULES
+from .rules import PAIR_ONLY, RULE_ARGS, RULES
 from .scaling import ScaledProblem, scale
 from .simplex import to_simplex
 from .validation import check_criterion, check_estimates
@@ -161,7 +161,7 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
     return float(sp.unscale_gap(criteria.gap(ev.g, w)))
 
 
-METHODS = {"ci": _ci_pair, "bci": bci, "mbci": mbci, **RULES}
+METHODS = {"ci": _ci_pair, "bci": bci, "mbci": mbci}
 
 
 def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **method_args):
@@ -170,6 +170,44 @@ def fuse(means, covs, method="bci", criterion="trace", backend="clarabel", **met
     method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, chi), or a rule of
     `rules.py`: "naive", "known-cross" (method_args cross), "fast-ci", "ifci", "ici", "ei".
     """
+    if method in RULES:
+        return fuse_rule(means, covs, method, criterion, **method_args)
     if method not in METHODS:
-        raise FusionInputError(f"method must be one of {tuple(METHODS)}, got {method!r}")
+        raise FusionInputError(
+            f"method must be one of {(*METHODS, *RULES)}, got {method!r}")
     return METHODS[method](means, covs, criterion=criterion, backend=backend, **method_args)
+
+
+def fuse_rule(means, covs, method, criterion="trace", **method_args) -> FusionResult:
+    """A rule of `rules.py` on validated input, covariances (and cross) scaled by the power
+    of two 2^-e that brings the geometric middle of the nodes' scales to about 1."""
+    means, covs = check_estimates(means, covs)
+    check_criterion(criterion)
+    if method in PAIR_ONLY and len(means) != 2:
+        raise FusionInputError(f"method {method!r} fuses 2 nodes, got N = {len(means)}")
+    if set(method_args) != RULE_ARGS[method]:
+        raise FusionInputError(f"method {method!r} takes the arguments "
+                               f"{sorted(RULE_ARGS[method])}, got {sorted(method_args)}")
+    scales = np.frexp(np.diagonal(covs, axis1=-2, axis2=-1).max(-1))[1]
+    e = int(scales.min() + scales.max()) // 2
+    args = {k: _ldexp_numbers(v, -e) for k, v in method_args.items()}
+    t0 = time.perf_counter()
+    out = RULES[method](means, np.ldexp(covs, -e), criterion, **args)
+    wall = time.perf_counter() - t0
+    if criterion == "trace":
+        objective = np.ldexp(np.trace(out.cov), e)
+    else:
+        objective = np.linalg.slogdet(out.cov)[1] + len(out.mean) * e * np.log(2.0)
+    return FusionResult(weights=out.weights, mean=out.mean, cov=np.ldexp(out.cov, e),
+                        objective=float(objective), gap=0.0, status=out.status,
+                        backend="closed-form", solve_time=wall, iterations=0, method=method,
+                        criterion=criterion)
+
+
+def _ldexp_numbers(value, e):
+    """value * 2^e if it is an array of numbers; otherwise as it is, for the rule to refuse."""
+    try:
+        a = np.asarray(value)
+    except ValueError:
+        return value
+    return np.ldexp(a, e) if a.dtype.kind in "iuf" else value
