@@ -1,53 +1,83 @@
-"""Fusion rules other than optimised CI, for comparison, through `fuse(method=...)`.
+"""Fusion rules other than optimised CI, for comparison: `RULES[name](means, covs, criterion,
+**args) -> RuleOutput`, called by the core (`fuse(method=name)`, `fuse_batch`).
 
-Each rule gives gains K_i (N, n, n) with sum_i K_i = I and a covariance P (n, n), and
-m = sum_i K_i m_i. What each assumes, and whether its P is consistent (>= the true error
-covariance) when the cross-correlation of the inputs is unknown:
+Inputs arrive validated: float64 means (N, n) and covs (N, n, n), finite, symmetric and
+positive definite, multiplied by a power of two so that the nodes' scales sit around 1
+(they may still differ by up to ~1e150 either way, each with a condition number up to ~1e13).
+Each rule gives gains K_i (n, n) with sum_i K_i = I, the mean m = sum_i K_i m_i and a
+covariance P. What each assumes, and whether P is consistent (>= the true error covariance)
+when the cross-correlation of the inputs is unknown:
 
-- "naive" (independent / Kalman): P = (sum Y_i)^-1, K_i = P Y_i. Assumes independent errors;
-  optimal then, overconfident (inconsistent) under correlation.
-- "known-cross" (BLUE, Bar-Shalom–Campo for N = 2): given the joint covariance S (N n, N n)
+- "naive" (independent / Kalman): P = (sum Y_i)^-1, K_i = P Y_i, Y_i = P_i^-1. Assumes
+  independent errors; optimal then, overconfident (inconsistent) under correlation.
+- "known-cross" (BLUE; Bar-Shalom–Campo for N = 2): given the joint covariance S (N n, N n)
   with blocks cross[i, j] = cov(e_i, e_j), P = (H^T S^-1 H)^-1 and K = P H^T S^-1 with
-  H = [I; ...; I]. Exact and the smallest error covariance of all linear unbiased rules, if S
-  is right; it does not apply when S is unknown.
-- "fast-ci" (Niehsen 2002): CI with w_i proportional to 1 / tr(P_i). Consistent under any
-  correlation (every CI weight is), not optimal in any criterion.
+  H = [I; ...; I]. Exact and the smallest error covariance of all linear unbiased rules, if
+  S is right; it does not apply when S is unknown.
+- "fast-ci" (Niehsen 2002): CI, P = (sum w_i Y_i)^-1 and K_i = P w_i Y_i, with
+  w_i proportional to 1 / tr(P_i). Consistent under any correlation (every CI weight is),
+  optimal in no criterion.
 - "ifci" (improved fast CI, Franken & Hupper 2005): CI with, for Y = sum Y_i,
-  w_i = (det Y - det(Y - Y_i) + det Y_i) / sum_j (det Y - det(Y - Y_j) + det Y_j).
-  Consistent under any correlation, like fast-ci.
+  w_i proportional to det Y - det(Y - Y_i) + det Y_i. Consistent under any correlation.
 - "ici" (inverse CI, Noack et al. 2017; N = 2): with G = w P_a + (1 - w) P_b,
-  P^-1 = Y_a + Y_b - G^-1, K_a = P (Y_a - w G^-1), K_b = P (Y_b - (1 - w) G^-1), w in [0, 1]
-  minimising the criterion (grid then bounded Brent). Assumes the correlation comes from
-  common information of unknown amount: consistent for that model, not for arbitrary
-  correlation; never worse than the better input (w = 0 or 1 give P_a or P_b).
+  P^-1 = Y_a + Y_b - G^-1, K_a = P (Y_a - w G^-1), K_b = P (Y_b - (1 - w) G^-1), and w in
+  [0, 1] minimising the criterion (convex in w). Consistent when the correlation comes from
+  common information of unknown amount, not under arbitrary correlation; w = 0 and 1 give
+  P_a and P_b, so it is never worse than the better input.
 - "ei" (ellipsoidal intersection, Sijs & Lazar 2012; N = 2): with the mutual covariance
-  Gam = T diag(max(mu_k, 1)) T^T (P_b = T T^T, P_a = T diag(mu) T^T),
-  P^-1 = Y_a + Y_b - Gam^-1 (per axis of T, the larger information) and the mutual mean
-  gam = Q^-1 ((Y_b - Gam^-1 + eta I) m_a + (Y_a - Gam^-1 + eta I) m_b),
-  Q = Y_a + Y_b - 2 Gam^-1 + 2 eta I, m = P (Y_a m_a + Y_b m_b - Gam^-1 gam); eta > 0 only
-  when some mu_k is within 10 EI_EPS of 1. A heuristic: no consistency guarantee.
+  Gam = T diag(max(mu_k, 1)) T^T, P^-1 = Y_a + Y_b - Gam^-1 and the mutual mean gam,
+  m = P (Y_a m_a + Y_b m_b - Gam^-1 gam): per axis of T, the estimate with the smaller
+  variance. A heuristic: no consistency guarantee.
 
-Results are `FusionResult`s with status "closed-form" (ICI: "optimal" for its 1-D search),
-gap 0 (no CI optimisation to certify) and objective tr P or log det P. Their `weights` are
-the CI weights for fast-ci and ifci, w and 1 - w for ici, and the gain shares tr(K_i) / n
-(summing to 1, negative for known-cross when a gain is) for naive, known-cross and ei.
+How the numbers stay finite and accurate:
+
+- The pair rules (ici, ei) work in the basis that diagonalises both covariances,
+  P_b = T T^T and P_a = T diag(mu) T^T (`_pencil`), where each formula is per axis. mu are
+  the squared singular values of L_b^-1 L_a (Cholesky factors), so scale differences between
+  the nodes cost no accuracy and nothing is squared. ICI's covariance per axis is
+  mu (a + b mu) / (a + b mu^2) (a = 1 - w, b = w: a sum of positive terms, so P is positive
+  definite), kept in logs; its weight is found by bisection on the sign of the derivative.
+  EI's mutual mean needs a regulariser eta only on an axis whose two variances tie to within
+  10 eta (rounding level); there the axis gives the loser's mean the share
+  t eta / (1 - t + 2 eta), t <= 1 the ratio of the smaller to the larger variance (1/2 at an
+  exact tie, 0 on every other axis, as eta -> 0 in Sijs & Lazar's eq. 16).
+- IFCI's weights are formed from ratios to det Y, which lie in [0, 1]:
+  1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the eigenvalues of the share
+  L^-1 Y_i L^-T (Y = L L^T), by log1p/expm1, and det Y_i / det Y from Cholesky diagonals.
+- known-cross whitens each node by its Cholesky factor (the joint becomes a correlation
+  matrix C with identity diagonal blocks) and solves the least-squares form by QR.
+- The mean is m_r + sum_i K_i (m_i - m_r), r the node of the largest gain share, with the
+  differences scaled by a power of two, so that no product overflows.
+A rule that still meets a non-finite or non-positive-definite result raises
+FusionSolverError(method, "numerical_error", ...); it never returns one.
+
+`weights` are the CI weights for fast-ci and ifci, (w, 1 - w) for ici ("ci_weights"), and
+the gain shares tr(K_i) / n (summing to 1, negative where a gain is, e.g. for known-cross)
+for naive, known-cross and ei ("gain_shares").
 """
 
 from __future__ import annotations
 
-import time
-
-import numpy as np
-from scipy.optimize import minimize_scalar
-
+from collections.abc import Callable
 from typing import NamedTuple
 
-from .results import FusionInputError, Status
-from .validation import SYMMETRY_RTOL
+import numpy as np
+from scipy.linalg import lapack
+
+from .results import FusionInputError, FusionSolverError, Status
+from .validation import SYMMETRY_RTOL, finite_array
+
+CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
+_EPS = np.finfo(float).eps
+# EI: regulariser of the mutual mean on a tied axis (Sijs & Lazar's eta), rounding level.
+EI_ETA = _EPS
+# ICI: the weight is w = 1 / (1 + exp(-u)); u in [-_U_MAX, _U_MAX] spans every float weight.
+_U_MAX = 800.0
 
 
 class RuleOutput(NamedTuple):
-    """weights (N,), mean (n,), cov (n, n), status, and what the weights are."""
+    """A rule's result: weights (N,) as `weights_are` says, mean (n,), cov (n, n) symmetric
+    positive definite and finite, status CLOSED_FORM (ici: OPTIMAL for its 1-D search)."""
 
     weights: np.ndarray
     mean: np.ndarray
@@ -56,149 +86,234 @@ class RuleOutput(NamedTuple):
     weights_are: str
 
 
-def diagonalise_covariances(Pa, Pb):
-    """lam (n,), T (n, n) with Pa = T diag(1/lam) T^T, Pb = T T^T."""
-    L = np.linalg.cholesky(Pa + Pb)
-    Li = np.linalg.inv(L)
-    nu, U = np.linalg.eigh(Li @ Pa @ Li.T)
-    nu = np.clip(nu, np.finfo(float).eps, 1 - np.finfo(float).eps)
-    return (1.0 - nu) / nu, (L @ U) * np.sqrt(1.0 - nu)
-
-EI_EPS = 1e-8
-_ICI_GRID = 21
+def naive(means, covs, criterion) -> RuleOutput:
+    """Independent (Kalman) fusion: CI formula with every weight 1."""
+    return _ci_with(means, covs, np.ones(len(means)), "naive", GAIN_SHARES)
 
 
-def naive(means, covs, criterion="trace") -> FusionResult:
-    """Independent (Kalman) fusion of means (N, n), covs (N, n, n)."""
-    means, covs, t0 = _start(means, covs, criterion)
-    Ys = np.linalg.inv(covs)
-    P = np.linalg.inv(Ys.sum(0))
-    return _result(means, P @ Ys, P, None, criterion, "naive", t0)
+def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
+    """BLUE given cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), cross[i, i] = covs[i].
 
-
-def known_cross(means, covs, criterion="trace", *, cross=None) -> FusionResult:
-    """BLUE given the joint covariance: cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), with
-    cross[i, i] equal to covs[i]."""
-    means, covs, t0 = _start(means, covs, criterion)
+    With D = blockdiag(D_i), P_i = D_i D_i^T, the joint is S = D C D^T, C = R R^T, and
+    Z = R^-1 D^-1 H = Q U (thin QR): P = U^-1 U^-T, K = U^-1 Q^T R^-1 D^-1.
+    """
     N, n = means.shape
-    S = _joint(cross, covs)
-    X = np.linalg.solve(S, np.tile(np.eye(n), (N, 1)))  # S^-1 H, (N n, n)
-    P = np.linalg.inv(X.reshape(N, n, n).sum(0))
-    P = 0.5 * (P + P.T)
-    gains = P @ np.swapaxes(X.reshape(N, n, n), -1, -2)  # K_i = P (S^-1 H)_i^T
-    return _result(means, gains, P, None, criterion, "known-cross", t0)
+    Dinv = np.linalg.inv(np.linalg.cholesky(covs))  # (N, n, n)
+    R = _correlation_factor(cross, covs, Dinv)
+    Z = _solve_lower(R, Dinv.reshape(N * n, n))
+    Q, U = np.linalg.qr(Z)
+    Uinv = _solve_lower(U.T, np.eye(n)).T
+    G = _solve_lower(R, Q, transpose=True).reshape(N, n, n)  # R^-T Q by node
+    gains = Uinv @ np.swapaxes(G, -1, -2) @ Dinv
+    return _finish("known-cross", means, Uinv @ Uinv.T, gains)
 
 
-def fast_ci(means, covs, criterion="trace") -> FusionResult:
+def fast_ci(means, covs, criterion) -> RuleOutput:
     """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002)."""
-    means, covs, t0 = _start(means, covs, criterion)
-    inv_tr = 1.0 / np.trace(covs, axis1=-2, axis2=-1)
-    return _ci_with(means, covs, inv_tr / inv_tr.sum(), criterion, "fast-ci", t0)
+    tr = np.trace(covs, axis1=-2, axis2=-1)
+    ratio = tr.min() / tr  # in (0, 1]: no overflow whatever the scales
+    return _ci_with(means, covs, ratio / ratio.sum(), "fast-ci", CI_WEIGHTS)
 
 
-def ifci(means, covs, criterion="trace") -> FusionResult:
-    """CI with the determinant weights of Franken & Hupper (2005) (module docstring)."""
-    means, covs, t0 = _start(means, covs, criterion)
-    Ys = np.linalg.inv(covs)
-    Y = Ys.sum(0)
-    num = np.linalg.det(Y) - np.linalg.det(Y - Ys) + np.linalg.det(Ys)
-    return _ci_with(means, covs, num / num.sum(), criterion, "ifci", t0)
+def ifci(means, covs, criterion) -> RuleOutput:
+    """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y."""
+    n = means.shape[1]
+    Ys = _information(covs)
+    L = np.linalg.cholesky(Ys.sum(0))
+    Linv = _solve_lower(L, np.eye(n))
+    alpha = np.clip(np.linalg.eigvalsh(Linv @ Ys @ Linv.T), 0.0, 1.0)  # (N, n)
+    with np.errstate(divide="ignore"):  # alpha = 1: det(Y - Y_i) = 0, log1p gives -inf
+        lost = -np.expm1(np.log1p(-alpha).sum(-1))  # 1 - det(Y - Y_i) / det Y
+    # det Y_i / det Y = 1 / (det P_i det Y), factor by factor of the Cholesky diagonals
+    own = np.exp(-2.0 * np.log(_chol_diagonal(covs) * np.diagonal(L)).sum(-1))
+    score = lost + own
+    return _ci_with(means, covs, score / score.sum(), "ifci", CI_WEIGHTS, Ys)
 
 
-def ici(means, covs, criterion="trace") -> FusionResult:
+def ici(means, covs, criterion) -> RuleOutput:
     """Inverse covariance intersection of N = 2 estimates (module docstring)."""
-    means, covs, t0 = _start(means, covs, criterion, pair="ici")
-    Pa, Pb = covs
-    Ya, Yb = np.linalg.inv(covs)
-
-    def fused(w):
-        Ginv = np.linalg.inv(w * Pa + (1.0 - w) * Pb)
-        return np.linalg.inv(Ya + Yb - Ginv), Ginv
-
-    def f(w):
-        return _objective(fused(w)[0], criterion)
-
-    grid = np.linspace(0.0, 1.0, _ICI_GRID)
-    k = int(np.argmin([f(w) for w in grid]))
-    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, _ICI_GRID - 1)]
-    res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-12})
-    w = res.x if res.fun <= f(grid[k]) else grid[k]
-    P, Ginv = fused(w)
-    P = 0.5 * (P + P.T)
-    gains = np.stack([P @ (Ya - w * Ginv), P @ (Yb - (1.0 - w) * Ginv)])
-    return _result(means, gains, P, np.array([w, 1.0 - w]), criterion, "ici", t0,
-                   status=Status.OPTIMAL)
+    sigma, T, Tinv = _pencil(covs, "ici")
+    la, lb = _ici_weight(sigma, T, criterion)
+    l = 2.0 * np.log(sigma)  # log mu
+    g1, g2 = _ici_logs(la, lb, l)
+    F = T * np.exp(0.5 * (l + g1 - g2))  # P = F F^T, per axis mu (a + b mu) / (a + b mu^2)
+    ka = np.exp(la - g2)  # K_a = T diag(a / (a + b mu^2)) T^-1, K_b = I - K_a
+    kb = np.exp(lb + 2.0 * l - g2)
+    gains = np.stack([(T * ka) @ Tinv, (T * kb) @ Tinv])
+    weights = np.array([np.exp(lb), np.exp(la)])
+    return _finish("ici", means, F @ F.T, gains, Status.OPTIMAL, weights)
 
 
-def ei(means, covs, criterion="trace") -> FusionResult:
+def ei(means, covs, criterion) -> RuleOutput:
     """Ellipsoidal intersection of N = 2 estimates (module docstring)."""
-    means, covs, t0 = _start(means, covs, criterion, pair="ei")
-    lam, T = diagonalise_covariances(covs[0], covs[1])  # P_a = T diag(1/lam) T^T
-    Tinv = np.linalg.inv(T)
-    Ya, Yb = np.linalg.inv(covs)
-    Gam_inv = Tinv.T @ (np.minimum(lam, 1.0)[:, None] * Tinv)
-    n = len(lam)
-    near = np.abs(1.0 / lam - 1.0).min() < 10 * EI_EPS
-    eta = EI_EPS * np.trace(Ya + Yb) / n if near else 0.0
-    Ra, Rb = Yb - Gam_inv + eta * np.eye(n), Ya - Gam_inv + eta * np.eye(n)
-    QR = np.linalg.solve(Ra + Rb, np.stack([Ra, Rb]))  # Q^-1 R_a, Q^-1 R_b
-    P = np.linalg.inv(Ya + Yb - Gam_inv)
-    P = 0.5 * (P + P.T)
-    gains = P @ (np.stack([Ya, Yb]) - Gam_inv @ QR)
-    return _result(means, gains, P, None, criterion, "ei", t0)
+    sigma, T, Tinv = _pencil(covs, "ei")
+    t = np.minimum(sigma, 1.0 / sigma) ** 2  # smaller over larger variance per axis
+    eta = np.where(1.0 - t < 10.0 * EI_ETA, EI_ETA, 0.0)
+    lose = t * eta / (1.0 - t + 2.0 * eta)  # the loser's share: 0, or 1/2 at a tie
+    ka = np.where(sigma < 1.0, 1.0 - lose, lose)  # node a's gain per axis
+    F = T * np.minimum(sigma, 1.0)  # P = F F^T, per axis the smaller variance
+    gains = np.stack([(T * ka) @ Tinv, (T * (1.0 - ka)) @ Tinv])
+    return _finish("ei", means, F @ F.T, gains)
 
 
-RULES = {"naive": naive, "known-cross": known_cross, "fast-ci": fast_ci, "ifci": ifci,
-         "ici": ici, "ei": ei}
-RULE_ARGS = {name: frozenset({"cross"} if name == "known-cross" else ()) for name in RULES}
+RULES: dict[str, Callable[..., RuleOutput]] = {
+    "naive": naive, "known-cross": known_cross, "fast-ci": fast_ci, "ifci": ifci,
+    "ici": ici, "ei": ei}
+RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
+    "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
 
 
-def _start(means, covs, criterion, pair=None):
-    return means, covs, time.perf_counter()
+def _information(covs):
+    """Y_i = P_i^-1, symmetrised; (N, n, n)."""
+    Y = np.linalg.inv(covs)
+    return 0.5 * (Y + np.swapaxes(Y, -1, -2))
 
 
-def _joint(cross, covs) -> np.ndarray:
-    """The joint covariance (N n, N n) from cross (N, N, n, n), checked."""
+def _solve_lower(L, B, transpose=False):
+    """L^-1 B (L^-T B if transpose) for L (m, m) lower triangular, B (m, k), by LAPACK
+    (scipy's solve_triangular costs a millisecond a call); NaN if L is singular, which
+    `_output` refuses."""
+    X, info = lapack.dtrtrs(L, B, lower=1, trans=int(transpose))
+    return X if info == 0 else np.full(X.shape, np.nan)
+
+
+def _chol_diagonal(covs):
+    return np.diagonal(np.linalg.cholesky(covs), axis1=-2, axis2=-1)
+
+
+def _ci_with(means, covs, w, method, weights_are, Ys=None) -> RuleOutput:
+    """The CI formula with weights w (N,): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i; the
+    gains are applied without being formed (O(N n^2))."""
+    wY = w[:, None, None] * (_information(covs) if Ys is None else Ys)
+    P = np.linalg.inv(wY.sum(0))
+    shares = np.einsum("jk,ijk->i", P, wY) / means.shape[1]  # tr(P w_i Y_i) / n
+    mean = _mean(means, shares, lambda d: P @ np.einsum("ijk,ik->j", wY, d))
+    weights = w if weights_are == CI_WEIGHTS else shares
+    return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
+
+
+def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) -> RuleOutput:
+    """A rule given by its gains (N, n, n) and P; weights are CI weights if given, else the
+    gain shares."""
+    shares = np.trace(gains, axis1=-2, axis2=-1) / means.shape[1]
+    mean = _mean(means, shares, lambda d: np.einsum("ijk,ik->j", gains, d))
+    if weights is None:
+        return _output(method, shares, mean, P, status, GAIN_SHARES)
+    return _output(method, weights, mean, P, status, CI_WEIGHTS)
+
+
+def _mean(means, shares, apply_gains):
+    """m = m_r + sum_i K_i (m_i - m_r) (sum_i K_i = I), r the node of the largest gain share;
+    apply_gains(d) = sum_i K_i d_i for d (N, n), given differences scaled by 2^-e so that
+    each is at most 2 in size and no product overflows."""
+    r = int(np.argmax(shares))
+    e = int(np.frexp(np.abs(means).max())[1])
+    d = np.ldexp(means, -e) - np.ldexp(means[r], -e)
+    with np.errstate(over="ignore"):  # a mean beyond the float range: refused in _output
+        return means[r] + np.ldexp(apply_gains(d), e)
+
+
+def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:
+    """The result, refused (FusionSolverError) if anything is non-finite or P is not
+    positive definite."""
+    P = 0.5 * (P + P.T)
+    finite = all(np.isfinite(x).all() for x in (weights, mean, P))
+    try:
+        if finite:
+            np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        finite = False
+    if not finite:
+        raise FusionSolverError(method, "numerical_error",
+                                "the fused mean or covariance is not finite or not positive "
+                                "definite in double precision")
+    return RuleOutput(weights, mean, P, status, weights_are)
+
+
+def _pencil(covs, method):
+    """P_b = T T^T and P_a = T diag(sigma^2) T^T for covs (2, n, n): sigma (n,) > 0, T and
+    T^-1 (n, n). sigma are the singular values of L_b^-1 L_a (Cholesky factors, lower):
+    with L_b^-1 L_a = U diag(sigma) V^T, T = L_b U."""
+    n = covs.shape[1]
+    La, Lb = np.linalg.cholesky(covs)
+    U, sigma, _ = np.linalg.svd(_solve_lower(Lb, La))
+    if sigma.min() == 0.0:
+        raise FusionSolverError(method, "numerical_error",
+                                "the covariances' ratio exceeds the double-precision range")
+    return sigma, Lb @ U, U.T @ _solve_lower(Lb, np.eye(n))
+
+
+def _ici_logs(la, lb, l):
+    """log(a + b mu) and log(a + b mu^2) per axis for a = e^la, b = e^lb, mu = e^l (n,)."""
+    return np.logaddexp(la, lb + l), np.logaddexp(la, lb + 2.0 * l)
+
+
+def _ici_weight(sigma, T, criterion):
+    """(log(1 - w), log w) minimising ICI's tr P(w) or log det P(w), both convex in w: per
+    axis, p(w) = mu (a + b mu) / (a + b mu^2) has p'' = 2 mu^2 (mu - 1)^2 (mu + 1) /
+    (a + b mu^2)^3 >= 0, and (log p)'' >= 0 likewise. Bisection on the sign of
+    f'(w) in u = log(w / (1 - w)), down to the rounding of w and 1 - w."""
+    l = 2.0 * np.log(sigma)
+    sign = np.sign(1.0 - sigma)  # sign of p'(w) per axis
+    with np.errstate(divide="ignore"):  # sigma = 1: the axis does not depend on w
+        log_gap = np.log(np.abs(1.0 - sigma)) + np.log1p(sigma)  # log |1 - mu|
+    log_c = 2.0 * np.log(np.linalg.norm(T, axis=0))  # tr P = sum_k c_k p_k
+
+    def slope(la, lb):  # sign of f'(w), from each term's log size
+        g1, g2 = _ici_logs(la, lb, l)
+        if criterion == "trace":  # c mu^2 (1 - mu) / (a + b mu^2)^2
+            size = log_c + 2.0 * l + log_gap - 2.0 * g2
+        else:  # mu (1 - mu) / ((a + b mu)(a + b mu^2))
+            size = l + log_gap - g1 - g2
+        top = size.max()
+        return 0.0 if top == -np.inf else np.sum(sign * np.exp(size - top))
+
+    if slope(0.0, -np.inf) >= 0.0:  # w = 0
+        return 0.0, -np.inf
+    if slope(-np.inf, 0.0) <= 0.0:  # w = 1
+        return -np.inf, 0.0
+    lo, hi = -_U_MAX, _U_MAX
+    while True:
+        u = 0.5 * (lo + hi)
+        if hi - lo <= _EPS or u in (lo, hi):
+            return -np.logaddexp(0.0, u), -np.logaddexp(0.0, -u)
+        if slope(-np.logaddexp(0.0, u), -np.logaddexp(0.0, -u)) > 0.0:
+            hi = u
+        else:
+            lo = u
+
+
+def _correlation_factor(cross, covs, Dinv):
+    """cross (N, N, n, n) checked, and the Cholesky factor R (N n, N n) of the joint
+    whitened node by node, C = R R^T with C[i, j] = D_i^-1 cross[i, j] D_j^-T (identity
+    diagonal blocks): well scaled whatever the nodes' scales."""
     N, n = covs.shape[:2]
-    if cross is None:
-        raise FusionInputError("method 'known-cross' needs cross (N, N, n, n)")
-    cross = np.asarray(cross, dtype=float)
+    cross = finite_array(cross, "cross")
     if cross.shape != (N, N, n, n):
         raise FusionInputError(f"cross must have shape {(N, N, n, n)}, got {cross.shape}")
-    if not np.all(np.isfinite(cross)):
-        raise FusionInputError("cross has a non-finite value")
-    S = cross.transpose(0, 2, 1, 3).reshape(N * n, N * n)
-    tol = SYMMETRY_RTOL * np.abs(S).max()
-    if np.abs(S - S.T).max() > tol:
-        raise FusionInputError("cross is not symmetric: cross[i, j] must equal cross[j, i]^T")
-    diag = cross[np.arange(N), np.arange(N)]
-    bad = np.abs(diag - covs).max(axis=(-2, -1)) > tol
-    if bad.any():
-        raise FusionInputError(f"cross[{np.argmax(bad)}, {np.argmax(bad)}] differs from covs "
-                               f"of node {np.argmax(bad)}")
-    S = 0.5 * (S + S.T)
+    # Tolerances per block, from the nodes' own scales (|cross[i, j]| <= sqrt(s_i s_j)).
+    root = np.sqrt(np.abs(np.diagonal(covs, axis1=-2, axis2=-1)).max(-1))  # (N,)
+    tol = SYMMETRY_RTOL * root[:, None] * root[None, :]
+    asym = np.abs(cross - np.swapaxes(cross.transpose(1, 0, 2, 3), -1, -2)).max((-2, -1))
+    if (asym > tol).any():
+        i, j = np.argwhere(asym > tol)[0]
+        raise FusionInputError(f"cross is not symmetric: cross[{i}, {j}] differs from "
+                               f"cross[{j}, {i}]^T by {asym[i, j]:.3g}")
+    diag = np.abs(cross[np.arange(N), np.arange(N)] - covs).max((-2, -1))
+    if (diag > np.diagonal(tol)).any():
+        i = int(np.argmax(diag > np.diagonal(tol)))
+        raise FusionInputError(f"cross[{i}, {i}] differs from covs of node {i} by "
+                               f"{diag[i]:.3g}")
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow: refused below
+        C = np.einsum("iab,ijbc,jdc->ijad", Dinv, cross, Dinv)
+    C = 0.5 * (C + np.swapaxes(C.transpose(1, 0, 2, 3), -1, -2))
+    C[np.arange(N), np.arange(N)] = np.eye(n)
+    C = C.transpose(0, 2, 1, 3).reshape(N * n, N * n)
     try:
-        np.linalg.cholesky(S)
+        if not np.isfinite(C).all():
+            raise np.linalg.LinAlgError
+        return np.linalg.cholesky(C)
     except np.linalg.LinAlgError:
-        raise FusionInputError("cross: the joint covariance is not positive definite") from None
-    return S
-
-
-def _ci_with(means, covs, w, criterion, method, t0) -> FusionResult:
-    """CI with given weights w (N,): P = (sum w_i Y_i)^-1, K_i = P w_i Y_i."""
-    wY = w[:, None, None] * np.linalg.inv(covs)
-    P = np.linalg.inv(wY.sum(0))
-    return _result(means, P @ wY, 0.5 * (P + P.T), w, criterion, method, t0)
-
-
-def _objective(P, criterion) -> float:
-    return float(np.trace(P)) if criterion == "trace" else float(np.linalg.slogdet(P)[1])
-
-
-def _result(means, gains, P, weights, criterion, method, t0, status=Status.CLOSED_FORM):
-    are = "gain_shares" if weights is None else "ci_weights"
-    if weights is None:
-        weights = np.trace(gains, axis1=-2, axis2=-1) / P.shape[0]
-    mean = np.einsum("ijk,ik->j", gains, means)
-    return RuleOutput(weights, mean, 0.5 * (P + P.T), status, are)
+        raise FusionInputError("cross: the joint covariance is not positive definite") \
+            from None

@@ -1,17 +1,35 @@
-"""Fusion rules against closed forms, hand-computed cases and consistency properties."""
+"""The rules of `rules.py`: their contract, naive / fast-ci / ifci / known-cross against
+exact rational arithmetic (also for nodes 1e150 apart in scale), consistency under random
+joint covariances (DESIGN §1), known-cross's checks of `cross`, and the glue of `fuse` and
+`fuse_batch`. ICI and EI: test_rules_pairs.py; extreme inputs: test_rules_extremes.py."""
 
 import numpy as np
 import pytest
+from test_rules_exact import det, exact, inv, to_float
 
 import fusion_opt as fo
-from studies.backends import instance
+from fusion_opt.results import Status
+from fusion_opt.rules import PAIR_ONLY, RULE_ARGS, RULES, RuleOutput
 
-M2 = np.array([[1.0, 2.0], [3.0, 5.0]])
+
+def spd(rng, n, log10_scale=0.0, log10_cond=2.0):
+    """A random SPD matrix (n, n): random rotation, eigenvalues log-uniform over a factor
+    10^log10_cond around 10^log10_scale."""
+    Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    P = (Q * 10.0 ** (log10_scale + log10_cond * rng.uniform(-0.5, 0.5, n))) @ Q.T
+    return 0.5 * (P + P.T)
 
 
-def _joint(rng, covs, rho=0.6):
-    """Joint covariance with blocks R_i C_ij R_j^T (R_i R_i^T = P_i), C PSD with identity
-    diagonal blocks: a random PSD matrix whitened block by block, mixed with I (DESIGN §1)."""
+def problem(rng, N, n, spread=0.0, log10_cond=2.0):
+    """means (N, n) and covs (N, n, n), node scales 10^U(-spread, spread)."""
+    covs = np.stack([spd(rng, n, rng.uniform(-spread, spread), log10_cond) for _ in range(N)])
+    return rng.standard_normal((N, n)), covs
+
+
+def joint(rng, covs, rho):
+    """A joint covariance (N, N, n, n) with diagonal blocks exactly covs: blocks
+    R_i C_ij R_j^T (R_i R_i^T = P_i) with C PSD, identity diagonal blocks, mixed with I
+    (DESIGN §1, "Consistency")."""
     N, n = covs.shape[:2]
     R = np.linalg.cholesky(covs)
     A = rng.standard_normal((N * n, N * n + 2))
@@ -19,102 +37,242 @@ def _joint(rng, covs, rho=0.6):
     D = np.linalg.inv(np.linalg.cholesky(C[np.arange(N), np.arange(N)]))
     C = np.einsum("iab,ijbc,jdc->ijad", D, C, D)
     C = rho * C + (1 - rho) * np.eye(N)[:, :, None, None] * np.eye(n)
-    return np.einsum("iab,ijbc,jdc->ijad", R, C, R)
+    S = np.einsum("iab,ijbc,jdc->ijad", R, C, R)
+    S = 0.5 * (S + S.transpose(1, 0, 3, 2))
+    S[np.arange(N), np.arange(N)] = covs
+    return S
 
 
-def _true_error(gains, S):
+def flat(S):
+    """(N, N, n, n) blocks -> (N n, N n)."""
+    N, n = S.shape[1:3]
+    return S.transpose(0, 2, 1, 3).reshape(N * n, N * n)
+
+
+def probed_gains(name, covs, **args):
+    """K_i (N, n, n) read off the rule as a black box: the mean is linear in the means, so
+    a unit vector in node i's mean gives a column of K_i."""
+    N, n = covs.shape[:2]
+    K = np.empty((N, n, n))
+    for i in range(N):
+        for k in range(n):
+            m = np.zeros((N, n))
+            m[i, k] = 1.0
+            K[i, :, k] = RULES[name](m, covs, "trace", **args).mean
+    return K
+
+
+def true_error(gains, S):
+    """cov(sum_i K_i e_i) = K S K^T for the joint S (N, N, n, n)."""
     N, n = gains.shape[:2]
     K = gains.transpose(1, 0, 2).reshape(n, N * n)
-    return K @ S.transpose(0, 2, 1, 3).reshape(N * n, N * n) @ K.T
+    return K @ flat(S) @ K.T
 
 
-def _gains(r, covs):
-    """CI-type gains K_i = P w_i Y_i from a result."""
-    return r.cov @ (r.weights[:, None, None] * np.linalg.inv(covs))
+def assert_close(actual, reference, rtol):
+    """max |actual - reference| <= rtol * max |reference| (reference not 0)."""
+    err = np.abs(np.asarray(actual) - reference).max()
+    assert err <= rtol * np.abs(reference).max(), (err, np.abs(reference).max())
 
 
-def test_naive_is_information_sum():
-    rng = np.random.default_rng(0)
-    covs, means = instance(rng, 3, 2, "random"), rng.standard_normal((3, 2))
-    r = fo.fuse(means, covs, method="naive")
-    Y = np.linalg.inv(covs)
-    P = np.linalg.inv(Y.sum(0))
-    assert np.allclose(r.cov, P) and np.allclose(r.mean, P @ np.einsum("ijk,ik->j", Y, means))
+# --- exact references -------------------------------------------------------------------
+
+def exact_ci(means, covs, w):
+    """The CI formula in Fractions for weights w (Fractions): P, m as floats."""
+    Ys = [inv(P) for P in exact(covs)]
+    P = inv(sum(wi * Y for wi, Y in zip(w, Ys, strict=True)))
+    m = P @ sum(wi * Y @ mi for wi, Y, mi in zip(w, Ys, exact(means), strict=True))
+    return to_float(P), to_float(m)
 
 
-def test_known_cross_is_dense_blue_and_smallest():
-    rng = np.random.default_rng(1)
-    covs, means = instance(rng, 3, 2, "random"), rng.standard_normal((3, 2))
-    S = _joint(rng, covs)
-    r = fo.fuse(means, covs, method="known-cross", cross=S)
-    Sd = S.transpose(0, 2, 1, 3).reshape(6, 6)
-    H = np.tile(np.eye(2), (3, 1))
-    P = np.linalg.inv(H.T @ np.linalg.solve(Sd, H))
-    assert np.allclose(r.cov, P)
-    assert np.allclose(r.mean, P @ H.T @ np.linalg.solve(Sd, means.ravel()))
-    for method in ("naive", "fast-ci", "ifci", "bci"):
-        q = fo.fuse(means, covs, method=method, backend="newton")
-        gains = q.cov @ np.linalg.inv(covs) if method == "naive" else _gains(q, covs)
-        err = _true_error(gains, S)
-        assert np.linalg.eigvalsh(err - r.cov).min() >= -1e-10, method
+def exact_weights(name, covs):
+    """Weights of naive (all 1), fast-ci and ifci, in Fractions."""
+    if name == "naive":
+        return [1] * len(covs)
+    if name == "fast-ci":
+        inv_tr = [1 / np.trace(P) for P in exact(covs)]
+        return [x / sum(inv_tr) for x in inv_tr]
+    Ys = [inv(P) for P in exact(covs)]
+    Y = sum(Ys)
+    score = [det(Y) - det(Y - Yi) + det(Yi) for Yi in Ys]
+    return [s / sum(score) for s in score]
 
 
-def test_fast_ci_and_ifci_hand_computed():
+def exact_blue(means, S):
+    """P = (H^T S^-1 H)^-1, m = P H^T S^-1 m_stack in Fractions, as floats."""
+    N, n = means.shape
+    Sinv = inv(exact(flat(S)))
+    H = np.concatenate([np.eye(n, dtype=int).astype(object)] * N)
+    P = inv(H.T @ Sinv @ H)
+    return to_float(P), to_float(P @ H.T @ Sinv @ exact(means.ravel()))
+
+
+@pytest.mark.parametrize("spread", [0.0, 150.0])
+@pytest.mark.parametrize("name", ["naive", "fast-ci", "ifci"])
+def test_ci_family_matches_exact_arithmetic(name, spread):
+    rng = np.random.default_rng(10)
+    for N, n in [(2, 2), (3, 2), (2, 3), (4, 1)]:
+        means, covs = problem(rng, N, n, spread)
+        out = RULES[name](means, covs, "trace")
+        w = exact_weights(name, covs)
+        P, m = exact_ci(means, covs, w)
+        assert_close(out.cov, P, 1e-13)
+        assert_close(out.mean, m, 1e-12)
+        if out.weights_are == "ci_weights":
+            assert_close(out.weights, to_float(np.array(w)), 1e-13)
+
+
+def test_known_cross_matches_exact_blue():
+    rng = np.random.default_rng(11)
+    for spread in (0.0, 150.0):
+        for N, n in [(2, 2), (3, 2), (2, 3)]:
+            means, covs = problem(rng, N, n, spread)
+            S = joint(rng, covs, rho=0.8)
+            out = RULES["known-cross"](means, covs, "trace", cross=S)
+            P, m = exact_blue(means, S)
+            assert_close(out.cov, P, 1e-12)
+            assert_close(out.mean, m, 1e-11)
+
+
+def test_hand_computed_fast_ci_and_ifci():
     P = np.array([np.diag([1.0, 2.0]), np.diag([3.0, 1.0])])
-    r = fo.fuse(M2, P, method="fast-ci")  # tr = 3, 4: w = (1/3, 1/4) / (7/12)
-    assert np.allclose(r.weights, [4 / 7, 3 / 7]) and np.allclose(r.cov, 1.4 * np.eye(2))
-    # det Ya = 1/2, det Yb = 1/3, det(Ya + Yb) = 4/3 * 3/2 = 2: w_a = (2 - 1/3 + 1/2) / 4
-    q = fo.fuse(M2, P, method="ifci")
-    assert np.allclose(q.weights, [13 / 24, 11 / 24])
+    means = np.array([[1.0, 2.0], [3.0, 5.0]])
+    r = RULES["fast-ci"](means, P, "trace")  # tr = 3, 4: w = (1/3, 1/4) / (7/12)
+    np.testing.assert_allclose(r.weights, [4 / 7, 3 / 7], rtol=1e-15)
+    np.testing.assert_allclose(r.cov, 1.4 * np.eye(2), rtol=1e-15)
+    # det Ya = 1/2, det Yb = 1/3, det(Ya + Yb) = 2: w_a = (2 - 1/3 + 1/2) / 4
+    np.testing.assert_allclose(RULES["ifci"](means, P, "trace").weights, [13 / 24, 11 / 24],
+                               rtol=1e-15)
 
 
-def test_ici_and_ei_hand_computed():
-    P = np.array([np.diag([1.0, 4.0]), np.diag([4.0, 1.0])])
-    # ICI: by symmetry w = 1/2, G = 2.5 I, P^-1 = diag(1 + 1/4 - 0.4, ...) = 0.85 I
-    r = fo.fuse(M2, P, method="ici")
-    assert np.allclose(r.weights, [0.5, 0.5], atol=1e-6)
-    assert np.allclose(r.cov, np.eye(2) / 0.85)
-    assert np.allclose(r.mean, (np.diag([1.0, 0.25]) - 0.2 * np.eye(2)) @ M2[0] / 0.85
-                       + (np.diag([0.25, 1.0]) - 0.2 * np.eye(2)) @ M2[1] / 0.85)
-    # EI keeps, per axis, the more informative estimate
-    e = fo.fuse(M2, P, method="ei")
-    assert np.allclose(e.cov, np.eye(2)) and np.allclose(e.mean, [1.0, 5.0])
+# --- the contract -----------------------------------------------------------------------
+
+def test_tables_name_every_rule():
+    assert set(RULES) == {"naive", "known-cross", "fast-ci", "ifci", "ici", "ei"}
+    assert RULE_ARGS == {name: frozenset({"cross"} if name == "known-cross" else ())
+                         for name in RULES}
+    assert PAIR_ONLY == {"ici", "ei"}
 
 
-@pytest.mark.parametrize("method", ["fast-ci", "ifci"])
-def test_ci_rules_consistent_under_any_correlation(method):
+@pytest.mark.parametrize("name", list(RULES))
+def test_output_contract_and_gains(name):
+    """Types and shapes; gains sum to I; weights are what weights_are says: CI weights
+    reproduce the gains K_i = P w_i Y_i read off the mean, gain shares are tr(K_i) / n."""
+    rng = np.random.default_rng(12)
+    N = 2 if name in PAIR_ONLY else 3
+    means, covs = problem(rng, N, 3)
+    args = {"cross": joint(rng, covs, 0.5)} if name == "known-cross" else {}
+    out = RULES[name](means, covs, "logdet", **args)
+    assert isinstance(out, RuleOutput)
+    assert out.weights.shape == (N,) and out.mean.shape == (3,) and out.cov.shape == (3, 3)
+    assert out.status == (Status.OPTIMAL if name == "ici" else Status.CLOSED_FORM)
+    assert np.array_equal(out.cov, out.cov.T) and np.linalg.eigvalsh(out.cov).min() > 0
+    K = probed_gains(name, covs, **args)
+    assert_close(K.sum(0), np.eye(3), 1e-13)
+    np.testing.assert_allclose(out.mean, np.einsum("ijk,ik->j", K, means), atol=1e-13)
+    assert abs(out.weights.sum() - 1.0) < 1e-14
+    if name in ("naive", "known-cross", "ei"):
+        assert out.weights_are == "gain_shares"
+        assert_close(out.weights, np.trace(K, axis1=1, axis2=2) / 3, 1e-13)
+    else:
+        assert out.weights_are == "ci_weights" and (out.weights >= 0).all()
+        if name != "ici":
+            Ys = np.linalg.inv(covs)
+            assert_close(K, out.cov @ (out.weights[:, None, None] * Ys), 1e-13)
+
+
+# --- consistency (DESIGN §1) -----------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["fast-ci", "ifci"])
+def test_ci_rules_consistent_under_random_correlation(name):
     rng = np.random.default_rng(4)
-    for _ in range(5):
-        covs = instance(rng, 3, 3, "random")
-        S = _joint(rng, covs, rho=rng.uniform(0.5, 1.0))
-        r = fo.fuse(np.zeros((3, 3)), covs, method=method)
-        assert np.linalg.eigvalsh(r.cov - _true_error(_gains(r, covs), S)).min() >= -1e-10
-
-
-def test_ici_consistent_under_common_information():
-    rng = np.random.default_rng(5)
-    for _ in range(5):
-        Ia, Ib, Ic = np.linalg.inv(instance(rng, 3, 2, "random"))
-        Pa, Pb = np.linalg.inv(Ia + Ic), np.linalg.inv(Ib + Ic)
-        # e_a = Pa (Ia ea + Ic ec), e_b = Pb (Ib eb + Ic ec), cov(e_x) = I_x^-1
-        S = np.array([[Pa, Pa @ Ic @ Pb], [Pb @ Ic @ Pa, Pb]])
-        r = fo.fuse(np.zeros((2, 2)), np.array([Pa, Pb]), method="ici")
-        Ginv = np.linalg.inv(r.weights[0] * Pa + r.weights[1] * Pb)
-        gains = np.stack([r.cov @ (Ia + Ic - r.weights[0] * Ginv),
-                          r.cov @ (Ib + Ic - r.weights[1] * Ginv)])
-        assert np.linalg.eigvalsh(r.cov - _true_error(gains, S)).min() >= -1e-10
+    for spread in (0.0, 2.0, 2.0, 0.0, 1.0):
+        means, covs = problem(rng, 3, 3, spread)
+        S = joint(rng, covs, rho=rng.uniform(0.5, 1.0))
+        out = RULES[name](means, covs, "trace")
+        excess = out.cov - true_error(probed_gains(name, covs), S)
+        assert np.linalg.eigvalsh(excess).min() >= -1e-12 * np.abs(out.cov).max()
 
 
 def test_naive_overconfident_under_correlation():
     P = np.array([np.eye(2), np.eye(2)])
     S = np.array([[np.eye(2), np.eye(2)], [np.eye(2), np.eye(2)]])  # identical errors
-    r = fo.fuse(np.zeros((2, 2)), P, method="naive")
-    assert np.linalg.eigvalsh(r.cov - _true_error(r.cov @ np.linalg.inv(P), S)).max() < 0
+    out = RULES["naive"](np.zeros((2, 2)), P, "trace")
+    assert np.linalg.eigvalsh(out.cov - true_error(probed_gains("naive", P), S)).max() < 0
 
 
-def test_rule_inputs_checked():
+def test_known_cross_reports_its_true_error_and_is_smallest():
+    """BLUE: its P is the true error covariance K S K^T of its own mean, and no other
+    rule's true error is smaller."""
+    rng = np.random.default_rng(1)
+    means, covs = problem(rng, 3, 2)
+    S = joint(rng, covs, rho=0.6)
+    out = RULES["known-cross"](means, covs, "trace", cross=S)
+    assert_close(true_error(probed_gains("known-cross", covs, cross=S), S), out.cov, 1e-12)
+    for name in ("naive", "fast-ci", "ifci"):
+        err = true_error(probed_gains(name, covs), S)
+        assert np.linalg.eigvalsh(err - out.cov).min() >= -1e-12, name
+
+
+# --- known-cross checks its cross -------------------------------------------------------
+
+def _bad_cross():
+    """(cross, what the message must say) pairs for covs = problem(rng(5), 2, 2, 150)."""
+    rng = np.random.default_rng(5)
+    means, covs = problem(rng, 2, 2, 150.0)
+    S = joint(rng, covs, 0.5)
+    small = int(np.argmin(np.trace(covs, axis1=1, axis2=2)))
+    asym = S.copy()  # 1e-6 of the small node's scale: invisible beside the large node's
+    asym[small, small, 0, 1] *= 1.0 + 1e-6
+    wrong_diag = S.copy()
+    wrong_diag[small, small] *= 1.0 + 1e-6
+    too_correlated = S.copy()  # whitened cross block 1.01 I: a correlation above 1
+    R = np.linalg.cholesky(covs)
+    too_correlated[0, 1] = 1.01 * R[0] @ R[1].T
+    too_correlated[1, 0] = too_correlated[0, 1].T
+    nan = S.copy()
+    nan[0, 1, 0, 0] = np.nan
+    cases = [(S[:, :, :1], "shape"), (nan, "non-finite"), (S.astype(complex), "real"),
+             ([["a"]], "real"), (asym, "not symmetric"), (wrong_diag, r"cross\[\d, \d\]"),
+             (too_correlated, "not positive definite")]
+    return means, covs, cases
+
+
+def test_known_cross_refuses_bad_cross_by_name():
+    means, covs, cases = _bad_cross()
+    for cross, what in cases:
+        with pytest.raises(fo.FusionInputError, match="cross") as info:
+            RULES["known-cross"](means, covs, "trace", cross=cross)
+        assert info.match(what), (what, str(info.value))
+
+
+# --- the glue of fuse and fuse_batch ----------------------------------------------------
+
+@pytest.mark.parametrize("name", list(RULES))
+def test_fuse_and_fuse_batch_call_the_rules(name):
+    rng = np.random.default_rng(7)
+    N = 2 if name in PAIR_ONLY else 3
+    B = 3
+    means = rng.standard_normal((B, N, 2))
+    covs = np.stack([problem(rng, N, 2)[1] for _ in range(B)])
+    cross = np.stack([joint(rng, c, 0.5) for c in covs]) if name == "known-cross" else None
+    batch = fo.fuse_batch(means, covs, name, "logdet", cross=cross)
+    for b in range(B):
+        args = {} if cross is None else {"cross": cross[b]}
+        r = fo.fuse(means[b], covs[b], method=name, criterion="logdet", **args)
+        direct = RULES[name](means[b], covs[b], "logdet", **args)
+        np.testing.assert_allclose(r.cov, direct.cov, rtol=1e-14)
+        np.testing.assert_allclose(r.mean, direct.mean, rtol=1e-14)
+        assert r.objective == pytest.approx(np.linalg.slogdet(r.cov)[1], rel=1e-14, abs=1e-14)
+        assert r.status == direct.status and r.method == name
+        np.testing.assert_allclose(batch.cov[b], r.cov, rtol=1e-14)
+
+
+def test_fuse_refuses_wrong_rule_arguments():
     P = np.stack([np.eye(2)] * 3)
     with pytest.raises(fo.FusionInputError, match="'ei' fuses 2"):
         fo.fuse(np.zeros((3, 2)), P, method="ei")
     with pytest.raises(fo.FusionInputError, match="cross"):
         fo.fuse(np.zeros((3, 2)), P, method="known-cross")
+    with pytest.raises(fo.FusionInputError, match="cross"):
+        fo.fuse(np.zeros((3, 2)), P, method="naive", cross=np.zeros((3, 3, 2, 2)))

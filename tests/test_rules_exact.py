@@ -1,0 +1,115 @@
+"""Exact references for the rules' tests, and their own checks against numpy.
+
+Matrices are numpy object arrays of `Fraction`s (exactly the given floats, then exact
+arithmetic: no rounding, no overflow whatever the scale) or of 60-digit `Decimal`s (for the
+square roots of an eigen-decomposition, 2 x 2 only, by its closed form).
+"""
+
+from decimal import Decimal, localcontext
+from fractions import Fraction
+from math import log
+
+import numpy as np
+
+DIGITS = 60
+
+
+def exact(a) -> np.ndarray:
+    """A float array as Fractions, exactly."""
+    return np.vectorize(Fraction, otypes=[object])(np.asarray(a, dtype=float))
+
+
+def decimal(a) -> np.ndarray:
+    """A float array as Decimals, exactly."""
+    return np.vectorize(Decimal, otypes=[object])(np.asarray(a, dtype=float))
+
+
+def to_float(A) -> np.ndarray:
+    """Fractions or Decimals to the nearest floats."""
+    return np.vectorize(float, otypes=[float])(A)
+
+
+def eye(n, one=Fraction(1)) -> np.ndarray:
+    return np.array([[one if i == j else one * 0 for j in range(n)] for i in range(n)],
+                    dtype=object)
+
+
+def inv(A) -> np.ndarray:
+    """Gauss-Jordan elimination with a nonzero pivot (exact for Fractions)."""
+    n = len(A)
+    M = np.concatenate([A, eye(n, A[0, 0] * 0 + 1)], axis=1)
+    for c in range(n):
+        p = next(r for r in range(c, n) if M[r, c] != 0)
+        M[[c, p]] = M[[p, c]]
+        M[c] = M[c] / M[c, c]
+        for r in range(n):
+            if r != c and M[r, c] != 0:
+                M[r] = M[r] - M[r, c] * M[c]
+    return M[:, n:]
+
+
+def det(A):
+    """By elimination (exact for Fractions)."""
+    M, d = A.copy(), A[0, 0] * 0 + 1
+    for c in range(len(M)):
+        p = next((r for r in range(c, len(M)) if M[r, c] != 0), None)
+        if p is None:
+            return d * 0
+        if p != c:
+            M[[c, p]], d = M[[p, c]], -d
+        d = d * M[c, c]
+        for r in range(c + 1, len(M)):
+            M[r] = M[r] - M[r, c] / M[c, c] * M[c]
+    return d
+
+
+def log_of(x: Fraction) -> float:
+    """log of a positive Fraction of any size."""
+    return log(x.numerator) - log(x.denominator)
+
+
+def eigh2(A):
+    """Eigenvalues (ascending) and orthonormal eigenvectors (columns) of a symmetric 2 x 2
+    Decimal matrix, by the closed form without cancellation; call inside a context of
+    DIGITS digits."""
+    a, b, c = A[0, 0], A[0, 1], A[1, 1]
+    h, d = (a + c) / 2, (a - c) / 2
+    r = (d * d + b * b).sqrt()
+    if r == 0:
+        return np.array([h, h], dtype=object), eye(2, Decimal(1))
+    x, y = (r + d, b) if d >= 0 else (b, r - d)  # eigenvector of h + r
+    norm = (x * x + y * y).sqrt()
+    x, y = x / norm, y / norm
+    return np.array([h - r, h + r], dtype=object), np.array([[-y, x], [x, y]], dtype=object)
+
+
+def test_exact_inverse_and_determinant_match_numpy():
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 4):
+        A = rng.standard_normal((n, n)) + n * np.eye(n)
+        Ainv = inv(exact(A))
+        assert (exact(A) @ Ainv == eye(n)).all()
+        np.testing.assert_allclose(to_float(Ainv), np.linalg.inv(A), rtol=1e-12)
+        np.testing.assert_allclose(float(det(exact(A))), np.linalg.det(A), rtol=1e-12)
+
+
+def test_exact_arithmetic_has_no_range():
+    A = exact(np.diag([1e300, 1e-300]))
+    big = det(A @ A @ A @ A) / Fraction(1e-300) ** 4  # 1e1200
+    assert big == Fraction(1e300) ** 4 and abs(log_of(big) - 1200 * log(10)) < 1e-9
+    assert inv(A)[1, 1] == 1 / Fraction(1e-300) and to_float(inv(A))[1, 1] == 1 / 1e-300
+
+
+def test_decimal_eigh2_matches_numpy():
+    rng = np.random.default_rng(1)
+    G = rng.standard_normal((5, 2, 2))
+    cases = [*(G @ np.swapaxes(G, 1, 2) + 0.1 * np.eye(2)), np.diag([1.0, 2.0]),
+             np.diag([2.0, 1.0]), np.array([[1.0, 1e-300], [1e-300, 1.0]])]
+    for A in cases:
+        with localcontext() as ctx:
+            ctx.prec = DIGITS
+            lam, V = eigh2(decimal(A))
+            residual = decimal(A) @ V - V * lam
+        np.testing.assert_allclose(to_float(lam), np.linalg.eigvalsh(A), rtol=1e-14)
+        assert np.abs(to_float(residual)).max() < 1e-50
+        np.testing.assert_allclose(to_float(V.T @ V), np.eye(2), atol=1e-50)

@@ -1,0 +1,156 @@
+"""The rules on extreme inputs, against exact arithmetic: determinants that overflow,
+denormal covariances, nodes 1e150 around 1 with condition numbers up to 1e13, thousands of
+nodes, large and offset means. Never a NaN or inf, never a covariance that is not positive
+definite."""
+
+import numpy as np
+import pytest
+from test_rules import (
+    assert_close,
+    exact_blue,
+    exact_ci,
+    exact_weights,
+    joint,
+    probed_gains,
+    problem,
+)
+from test_rules_exact import to_float
+from test_rules_pairs import decimal_ei, exact_ici_cov
+
+import fusion_opt as fo
+from fusion_opt.rules import PAIR_ONLY, RULES
+
+
+@pytest.mark.parametrize("n,scales", [(12, (1e-30, 3e-30)), (2, (1e200, 2e200)),
+                                      (40, (1e-8, 1e8))])
+def test_ifci_weights_do_not_overflow(n, scales):
+    """Issue: det Y overflowed (n = 12, 1e-30 I; n = 2, 1e200 I) and gave NaN."""
+    covs = np.stack([s * np.eye(n) for s in scales])
+    out = RULES["ifci"](np.zeros((2, n)), covs, "trace")
+    assert_close(out.weights, to_float(np.array(exact_weights("ifci", covs))), 1e-14)
+
+
+def _denormal_problem(name):
+    rng = np.random.default_rng(40)
+    means, covs = problem(rng, 2, 2, log10_cond=1.0)
+    covs = covs * 1e-310  # denormal: the entries keep ~45 of their bits
+    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
+    cross = joint(rng, covs, 0.5) if name == "known-cross" else None
+    return means, covs, cross
+
+
+@pytest.mark.parametrize("name", list(RULES))
+def test_denormal_covariances_through_fuse(name):
+    """Issue: covariances 1e-310 gave NaN in every rule but ifci. Exact references take the
+    denormal inputs as they are."""
+    means, covs, cross = _denormal_problem(name)
+    args = {} if cross is None else {"cross": cross}
+    r = fo.fuse(means, covs, method=name, **args)
+    assert np.isfinite(r.cov).all() and np.isfinite(r.mean).all()
+    if name in ("naive", "fast-ci", "ifci"):
+        P, m = exact_ci(means, covs, exact_weights(name, covs))
+    elif name == "known-cross":
+        P, m = exact_blue(means, cross)
+    elif name == "ici":
+        P, m = to_float(exact_ici_cov(covs, r.weights[0])), r.mean
+    else:
+        P, m = decimal_ei(means, covs)
+    assert_close(r.cov, P, 1e-12)
+    assert_close(r.mean, m, 1e-12)
+
+
+def _extreme_cases(rng, count):
+    """(name, means, covs, args): nodes 10^U(-150, 150), conditions up to 1e13."""
+    for _ in range(count):
+        for name in RULES:
+            N = 2 if name in PAIR_ONLY else int(rng.integers(2, 6))
+            n = int(rng.choice([1, 2, 4, 8]))
+            means, covs = problem(rng, N, n, 150.0, log10_cond=rng.uniform(0.0, 13.0))
+            args = {"cross": joint(rng, covs, rng.uniform(0, 0.99))} \
+                if name == "known-cross" else {}
+            yield name, means, covs, args
+
+
+def test_no_nan_and_positive_definite_on_extreme_inputs():
+    """Finite and positive definite always; CI weights sum to 1, gain shares to 1 within
+    the rounding the conditioning allows."""
+    for name, means, covs, args in _extreme_cases(np.random.default_rng(41), 40):
+        for criterion in ("trace", "logdet"):
+            out = RULES[name](means, covs, criterion, **args)
+            assert all(np.isfinite(x).all() for x in out[:3]), name
+            np.linalg.cholesky(out.cov)
+            cond = np.linalg.cond(covs).max()
+            tol = 1e-14 if out.weights_are == "ci_weights" else 1e-14 * cond
+            assert abs(out.weights.sum() - 1.0) <= tol, name
+
+
+@pytest.mark.parametrize("name", ["naive", "fast-ci", "ifci", "known-cross"])
+def test_extreme_inputs_match_exact_arithmetic(name):
+    """Nodes 1e150 apart, conditions up to 1e13: errors within (condition x eps)."""
+    rng = np.random.default_rng(42)
+    for _ in range(12):
+        N, n = int(rng.integers(2, 4)), int(rng.choice([1, 2, 3]))
+        log10_cond = rng.uniform(0.0, 13.0)
+        means, covs = problem(rng, N, n, 150.0, log10_cond)
+        if name == "known-cross":
+            S = joint(rng, covs, 0.5)
+            out = RULES[name](means, covs, "trace", cross=S)
+            P, m = exact_blue(means, S)
+        else:
+            out = RULES[name](means, covs, "trace")
+            P, m = exact_ci(means, covs, exact_weights(name, covs))
+        rtol = 1e-14 * 10.0 ** log10_cond
+        assert_close(out.cov, P, rtol)
+        assert_close(out.mean, m, rtol)
+
+
+def test_many_nodes():
+    """N = 40 against exact arithmetic; N = 2000 against the textbook formulas in doubles
+    (scales within 1e+-1, where they are accurate, except that det Y - det(Y - Y_i) loses
+    about log10(N) digits to cancellation); nodes 1e150 around 1: finite and positive
+    definite."""
+    rng = np.random.default_rng(43)
+    means, covs = problem(rng, 40, 2, 1.0)
+    for name in ("naive", "fast-ci", "ifci"):
+        out = RULES[name](means, covs, "trace")
+        P, m = exact_ci(means, covs, exact_weights(name, covs))
+        assert_close(out.cov, P, 1e-14)
+        assert_close(out.mean, m, 1e-14)
+    means, covs = problem(rng, 2000, 3, 1.0)
+    Ys = np.linalg.inv(covs)
+    Y = Ys.sum(0)
+    inv_tr = 1.0 / np.trace(covs, axis1=1, axis2=2)
+    score = np.linalg.det(Y) - np.linalg.det(Y - Ys) + np.linalg.det(Ys)
+    for name, w, rtol in [("naive", np.ones(2000), 1e-13),
+                          ("fast-ci", inv_tr / inv_tr.sum(), 1e-13),
+                          ("ifci", score / score.sum(), 1e-11)]:
+        out = RULES[name](means, covs, "trace")
+        P = np.linalg.inv(np.einsum("i,ijk->jk", w, Ys))
+        assert_close(out.cov, P, rtol)
+        assert_close(out.mean, P @ np.einsum("i,ijk,ik->j", w, Ys, means), rtol)
+        if name != "naive":
+            assert_close(out.weights, w, rtol)
+    means, covs = problem(rng, 2000, 3, 150.0, 13.0)
+    for name in ("naive", "fast-ci", "ifci"):
+        out = RULES[name](means, covs, "trace")
+        assert np.isfinite(out.mean).all()
+        np.linalg.cholesky(out.cov)
+
+
+def test_large_and_offset_means():
+    """The mean is formed from differences to the nearest node's mean, scaled by a power of
+    two: means near 1e300 do not overflow, and a common offset of 1e8 costs no digit even
+    where the gains are large (known-cross, correlation 0.9999: gains near +-11)."""
+    rng = np.random.default_rng(44)
+    means, covs = problem(rng, 3, 2)
+    for name in ("naive", "fast-ci", "ifci"):
+        big = 1e300 * np.sign(means)
+        out = RULES[name](big, covs, "trace")
+        assert_close(out.mean, exact_ci(big, covs, exact_weights(name, covs))[1], 1e-14)
+    covs = np.stack([np.eye(2), 1.21 * np.eye(2)])
+    S = np.array([[covs[0], 0.9999 * 1.1 * np.eye(2)], [0.9999 * 1.1 * np.eye(2), covs[1]]])
+    assert np.abs(probed_gains("known-cross", covs, cross=S)).max() > 10.0
+    offset = rng.standard_normal((2, 2)) + 1e8
+    out = RULES["known-cross"](offset, covs, "trace", cross=S)
+    m = exact_blue(offset, S)[1]
+    assert np.abs(out.mean - m).max() <= np.spacing(np.abs(m).max())
