@@ -140,7 +140,8 @@ class TrackIds:
 # --- conversions -----------------------------------------------------------------------------
 
 def _gaussian_summary(items, name: str):
-    """(means (m, n), covs (m, n, n), common timestamp, is_track) of states or Tracks."""
+    """(means (m, n), covs (m, n, n), common timestamp, the Tracks or None) of a sequence of
+    states or of Tracks."""
     if isinstance(items, str | bytes) or not isinstance(items, Iterable):
         raise FusionInputError(f"{name} must be a sequence of Stone Soup states or Tracks, got "
                                f"{type(items).__name__}")
@@ -162,7 +163,7 @@ def _gaussian_summary(items, name: str):
         if t != stamps[0]:
             raise FusionInputError(f"{name}[{i}] is at {t} but {name}[0] at {stamps[0]}: the "
                                    f"states of one Estimates share one time")
-    return np.stack(means), np.stack(covs), stamps[0], tracks[0]
+    return np.stack(means), np.stack(covs), stamps[0], items if tracks[0] else None
 
 
 def _latest(track: Track, name: str):
@@ -193,10 +194,10 @@ def to_estimates(items, *, epoch: datetime = EPOCH, node: Hashable | None = None
     (a fresh TrackIds if None: 0, 1, ... in the given order); for states 0, 1, ....
     time = seconds from `epoch` to the common timestamp; node is stored as given.
     """
-    means, covs, stamp, is_track = _gaussian_summary(items, "items")
-    if is_track:
+    means, covs, stamp, tracks = _gaussian_summary(items, "items")
+    if tracks is not None:
         track_ids = TrackIds() if track_ids is None else track_ids
-        ids = [track_ids.int_id(t.id) for t in items]
+        ids = [track_ids.int_id(t.id) for t in tracks]
     else:
         ids = None
     try:
@@ -300,8 +301,8 @@ class OptimalChernoffUpdater(Updater):
                 raise FusionInputError(
                     f"measurement_model.noise_covar {A.shape} must match the predicted covar "
                     f"{B.shape}: Chernoff fusion takes whole states as measurements")
-            zero = np.zeros((len(B), 1))
-            omega = self.fuse_pair(GaussianState(zero, A), GaussianState(zero, B)).weights[0]
+            omega = fuse(np.zeros((2, len(B))), np.stack([A, B]), method="ci",
+                         criterion=self.criterion, backend=self.backend).weights[0]
             omega = float(np.clip(omega, INNOVATION_OMEGA_MIN, 1 - INNOVATION_OMEGA_MIN))
             innovation = A / (1 - omega) + B / omega
         else:

@@ -140,8 +140,8 @@ def test_tracks_round_trip_keeps_stone_soup_ids_and_latest_states():
         assert b.id == t.id and b.timestamp == t.timestamp
         np.testing.assert_array_equal(b.state_vector, t.state_vector)
         np.testing.assert_array_equal(b.covar, t.covar)
-    # the same tracks again keep their ids; a new one gets the next
-    again = fs.to_estimates(tracks[::-1] + [Track(_states(rng, 1))], track_ids=ids)
+    # the same tracks again (here from a generator) keep their ids; a new one gets the next
+    again = fs.to_estimates((t for t in tracks[::-1] + [Track(_states(rng, 1))]), track_ids=ids)
     assert again.ids.tolist() == [2, 1, 0, 3]
 
 
