@@ -172,7 +172,7 @@ def test_conversion_refusals_name_the_argument():
 # --- fuse_states -----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("method, args", [
-    ("bci", {}), ("ci", {}), ("naive", {}), ("fast-ci", {}),
+    ("bci", {}), ("ci", {}), ("naive", {}), ("fast-ci", {}), ("ifci", {}), ("ici", {}), ("ei", {}),
     ("mbci", {"p_detect": [0.9, 0.7], "chi": 0.8}),
 ])
 @pytest.mark.parametrize("criterion", ["trace", "logdet"])
