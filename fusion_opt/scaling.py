@@ -37,3 +37,18 @@ def conic_data(F, Ys, M):
             gram(ws.B, Ys[b, i])
         gram(ws.Ri, M[b])  # Rb^-T Rb^-1
         M[b] /= np.trace(M[b])
+
+
+def conic_problem(covs):
+    """(Ys (N, n, n), M (n, n)): the congruence-scaled problem a conic backend receives for
+    covariances covs (N, n, n), checked and prescaled as `fuse` does (for benchmarks and
+    tests that call a backend of `backends.REGISTRY` directly)."""
+    from . import core
+
+    means, covs = core.arrays(np.zeros(np.shape(covs)[:-1]), covs, False)
+    B, N, n = means.shape
+    a = core._Arrays(B, N, n)
+    core._prepare(means, covs, *core._unit_scales(B, N), a, core._NAMES, False)
+    Ys, M = np.empty((B, N, n, n)), np.empty((B, n, n))
+    conic_data(a.F, Ys, M)
+    return Ys[0], M[0]

@@ -22,13 +22,13 @@ import json
 import platform
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from fusion_opt import bci, criteria, fuse_batch, programs
 from fusion_opt.backends import REGISTRY, newton
-from fusion_opt.fusion import information
-from fusion_opt.scaling import scale
+from fusion_opt.scaling import conic_problem
 from fusion_opt.simplex import to_simplex
 
 from . import config as configs
@@ -126,7 +126,7 @@ def _single_rows(config, progress) -> list[dict]:
     for (n, N, crit, kind), ss in tqdm(list(zip(cells, seeds, strict=True)), disable=not progress,
                                        desc="backends", unit="cell"):
         rng = np.random.default_rng(ss)
-        problems = [scale(information(instance(rng, N, n, kind)), crit)
+        problems = [SimpleNamespace(**dict(zip(("Ys", "M"), conic_problem(instance(rng, N, n, kind)))))
                     for _ in range(config["instances"])]
         rows += _cell(problems, n, N, crit, kind, config)
     return rows
