@@ -104,6 +104,7 @@ def request(method, criterion, backend, args: dict) -> Request:
         raise FusionInputError(f"method must be one of {METHODS}, got {method!r}")
     if not isinstance(criterion, str) or criterion not in CRITERIA:
         raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    args = {k: v for k, v in args.items() if v is not None}  # None: not given
     polish = args.pop("polish", True)
     if not isinstance(polish, bool):
         raise FusionInputError(f"polish must be True or False, got {polish!r}")
@@ -325,16 +326,20 @@ def _overflow() -> FusionInputError:
 def _rules(req, means, covs, k, batch):
     """A rule of rules.py, problem by problem, on the prescaled covariances."""
     B, N, n = means.shape
-    scale = np.ldexp(1.0, -k)[:, None, None, None]
-    scaled = 0.5 * (covs + np.swapaxes(covs, -1, -2)) * scale
+    shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
+    scaled = np.ldexp(0.5 * (covs + np.swapaxes(covs, -1, -2)), shift)
     cross = _cross(req.args.get("cross"), B, N, n, batch) if "cross" in _ARGS[req.method] \
         else None
     outs = []
     for b in range(B):
-        args = {} if cross is None else {"cross": cross[b] * scale[b, 0]}
+        args = {} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}
         outs.append(rules.RULES[req.method](means[b], scaled[b], req.criterion, **args))
-    cov = np.stack([o.cov for o in outs]) / scale[:, :, :, 0]
-    obj = np.trace(cov, axis1=-2, axis2=-1) if req.trace else _logdet(cov)
+    scaled_cov = np.stack([o.cov for o in outs])
+    cov = np.ldexp(scaled_cov, -shift[:, 0])
+    if req.trace:
+        obj = np.ldexp(np.trace(scaled_cov, axis1=-2, axis2=-1), k)
+    else:
+        obj = _logdet(scaled_cov) + n * k * np.log(2.0)
     status = np.array([Status(o.status) for o in outs], dtype=object)
     return (np.stack([o.weights for o in outs]), np.stack([o.mean for o in outs]), cov, obj,
             np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0, outs[0].weights_are)

@@ -43,6 +43,7 @@ from .results import FusionInputError
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
 PAIRWISE = ("ci", "ici", "ei")
+CI_FAMILY = ("ci", "bci", "mbci")
 CRITERIA = ("trace", "logdet")
 
 
@@ -50,7 +51,8 @@ class ProcessingNode:
     """Fuses the estimates of `sources` (source names) step by step (module docstring).
 
     method, criterion, backend: as in `fo.fuse_batch` ("known-cross" is not offered: a
-    processing node does not know the cross-covariances of its sources);
+    processing node does not know the cross-covariances of its sources); backend is the
+    weight solver of "ci", "bci" and "mbci", and unused by the rules, which have none;
     association ("nearest" | "assignment"), threshold (> 0), dims (state components
     compared; None: all): as in `fo.associate`;
     p_detect: {source: detection probability in [0, 1]} for every source, for "mbci" only;
@@ -113,7 +115,8 @@ class ProcessingNode:
             if self.method == "mbci":
                 p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
                 extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
-            r = fuse_batch(M, C, self.method, self.criterion, self.backend, **extra)
+            backend = self.backend if self.method in CI_FAMILY else None
+            r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
             means[idx], covs[idx] = r.mean, r.cov
         return means, covs
 
