@@ -32,3 +32,32 @@ def objective(covs: np.ndarray, w: np.ndarray, criterion: str) -> np.ndarray:
     if criterion == "trace":
         return np.trace(np.linalg.inv(Y), axis1=-2, axis2=-1)
     return -np.linalg.slogdet(Y)[1]
+
+
+def instance(rng: np.random.Generator, N: int, n: int, kind: str) -> np.ndarray:
+    """Covariances (N, n, n) of one problem: "random" (P_i = A A^T / n + 0.01 I, A standard
+    normal) or "ill-conditioned" (eigenvalues log-uniform over 1e-6..1e6 in a random
+    rotation, each node scaled by 10^U(-3, 3))."""
+    if kind == "random":
+        A = rng.standard_normal((N, n, n))
+        return A @ np.swapaxes(A, -1, -2) / n + 0.01 * np.eye(n)
+    Q = np.linalg.qr(rng.standard_normal((N, n, n)))[0]
+    eig = 10.0 ** rng.uniform(-6, 6, (N, n)) * 10.0 ** rng.uniform(-3, 3, (N, 1))
+    P = (Q * eig[:, None, :]) @ np.swapaxes(Q, -1, -2)
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def near_identical(rng: np.random.Generator, n: int, N: int, cond: float = 1e12,
+                   eps: float = 1e-6) -> np.ndarray:
+    """Covariances (N, n, n) that differ by a relative eps from one base of condition
+    `cond` (eigenvalues log-spaced over 1..cond in a random rotation): the hardest family
+    for a certificate, since the optimum barely beats the best node."""
+    Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    P = (Q * np.logspace(0, np.log10(cond), n)) @ Q.T
+    out = []
+    for _ in range(N):
+        E = rng.standard_normal((n, n))
+        E = E @ E.T / n
+        Pi = P + eps * np.linalg.norm(P, 2) * E * 10 ** rng.uniform(-3, 0)
+        out.append(0.5 * (Pi + Pi.T))
+    return np.array(out)

@@ -18,10 +18,10 @@ def test_second_solve_of_same_shape_reuses_compiled_problem(criterion, monkeypat
     monkeypatch.setattr(SolvingChain, "apply",
                         lambda self, *a, **k: calls.append(1) or original(self, *a, **k))
     rng = np.random.default_rng(0)
-    fo.bci(*random_instance(rng, 4, 3), criterion)
+    fo.bci(*random_instance(rng, 4, 3), criterion, "clarabel")
     prog = programs.program(4, 3, criterion, cp.CLARABEL)
     assert len(calls) == 1 and prog.solves == 1
-    r = fo.bci(*random_instance(rng, 4, 3), criterion)  # new data, same shape
+    r = fo.bci(*random_instance(rng, 4, 3), criterion, "clarabel")  # new data, same shape
     assert programs.program(4, 3, criterion, cp.CLARABEL) is prog
     assert len(calls) == 1 and prog.solves == 2  # no new canonicalisation
     assert r.status == "optimal"
@@ -31,8 +31,8 @@ def test_second_solve_of_same_shape_reuses_compiled_problem(criterion, monkeypat
 def test_other_shape_builds_its_own_program():
     programs.clear_cache()
     rng = np.random.default_rng(1)
-    fo.bci(*random_instance(rng, 2, 3))
-    fo.bci(*random_instance(rng, 3, 3))
+    fo.bci(*random_instance(rng, 2, 3), backend="clarabel")
+    fo.bci(*random_instance(rng, 3, 3), backend="clarabel")
     assert {k[:3] for k in programs._CACHE} == {(2, 3, "trace"), (3, 3, "trace")}
 
 
@@ -57,7 +57,7 @@ def test_clarabel_retries_without_chordal_decomposition(monkeypatch):
     programs.clear_cache()
     rng = np.random.default_rng(3)
     inst = random_instance(rng, 3, 4)
-    expected = fo.bci(*inst, backend="clarabel", polish=False).objective
+    expected = fo.bci(*inst, backend="clarabel").objective
     real_solve, seen = cp.Problem.solve, []
 
     def flaky(self, *args, **kwargs):
@@ -67,9 +67,9 @@ def test_clarabel_retries_without_chordal_decomposition(monkeypatch):
         return real_solve(self, *args, **kwargs)
 
     monkeypatch.setattr(cp.Problem, "solve", flaky)
-    r = fo.bci(*inst, backend="clarabel", polish=False)
+    r = fo.bci(*inst, backend="clarabel")
     assert seen == [True, False] and r.status == "optimal"
-    assert r.objective == pytest.approx(expected, rel=1e-8)
+    assert r.objective == pytest.approx(expected, rel=1e-12)
 
     real_solver, used = clarabel.DefaultSolver, []
 
@@ -80,6 +80,6 @@ def test_clarabel_retries_without_chordal_decomposition(monkeypatch):
         return real_solver(P, q, A, b, cones, settings)
 
     monkeypatch.setattr(clarabel, "DefaultSolver", direct)
-    r = fo.bci(*inst, backend="clarabel-direct", polish=False)
+    r = fo.bci(*inst, backend="clarabel-direct")
     assert used == [True, False] and r.status == "optimal"
-    assert r.objective == pytest.approx(expected, rel=1e-6)
+    assert r.objective == pytest.approx(expected, rel=1e-12)

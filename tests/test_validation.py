@@ -79,7 +79,7 @@ def test_solver_failure_names_backend_and_status(monkeypatch):
 
     monkeypatch.setattr(cp.Problem, "solve", fail)
     with pytest.raises(fo.FusionSolverError, match=r"'clarabel' failed with status") as err:
-        fo.bci(MEANS, COVS)
+        fo.bci(MEANS, COVS, backend="clarabel")
     assert err.value.backend == "clarabel" and err.value.status == "solver_error"
 
 
