@@ -1,144 +1,183 @@
-"""The single-problem Newton (SQP) solver and the scalar pairwise solver against independent
-references: criteria.py's derivatives, grids, CVXPY, the batched solvers and Clarabel."""
+"""The compiled exact solver (SQP, nearest point, pairwise 1-D method) against independent
+references: the numpy criteria of criteria.py (f, g, H from inverted informations),
+CVXPY/Clarabel, grids, and each other (the SQP on N = 2 against the 1-D method)."""
 
 import cvxpy as cp
 import numpy as np
 import pytest
-from conftest import objective
+from conftest import instance, objective
 
 import fusion_opt as fo
-from fusion_opt.backends import REGISTRY, closed_form, newton
+from fusion_opt import core, factored
+from fusion_opt.backends import closed_form, newton
 from fusion_opt.criteria import evaluate
-from fusion_opt.fusion import information
-from fusion_opt.scaling import scale
-from studies.backends import instance
+from fusion_opt.factored import factor_at, model, work
 
 CRITERIA = ("trace", "logdet")
 KINDS = ("random", "ill-conditioned")
 
 
-def _scaled(covs, criterion):
-    return scale(information(covs), criterion)
+def _factors(covs):
+    """F (N, n, n) of covs (N, n, n) as the core makes them (prescaled by 2^-k)."""
+    means, covs = core.arrays(np.zeros(covs.shape[:-1]), covs, False)
+    a = core._Arrays(1, *means.shape[1:])
+    core._prepare(means, covs, *core._unit_scales(1, means.shape[1]), a, core._NAMES, False)
+    return a.F[0], a.k[0]
 
 
-def _f(sp, w, criterion):
-    return evaluate(sp.Ys, w, criterion, sp.M).f
+def evaluate_f(F, w, criterion):
+    """f at w in the factor form of factored.py."""
+    return factored.evaluate(F, w, work(*F.shape[:2]), criterion == "trace")[0]
+
+
+def _sqp(covs, criterion, w0=None):
+    F, _ = _factors(covs)
+    N, n = F.shape[:2]
+    w = np.full(N, 1.0 / N) if w0 is None else np.array(w0, dtype=float)
+    rel, it = newton.sqp(F, criterion == "trace", w, work(N, n), newton.TOL, 50 + 4 * N)
+    return w, rel, it
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
 @pytest.mark.parametrize("kind", KINDS)
-def test_whitened_model_has_the_gradient_and_hessian_of_criteria(kind, criterion):
-    # rho = 1: the model is Newton's, so d_i - d_j = z_i - z_j and H_ij = z_i . z_j
-    sp = _scaled(instance(np.random.default_rng(4), 6, 3, kind), criterion)
+def test_model_has_the_gradient_and_hessian_of_criteria(kind, criterion):
+    """rho = 1: the model is Newton's, so g matches and, on directions summing to 0,
+    Q^T H Q = (Q^T Z)(Q^T Z)^T with rows z_i of the nearest-point matrix."""
+    covs = instance(np.random.default_rng(4), 6, 3, kind)
+    F, _ = _factors(covs)
     w = np.random.default_rng(5).dirichlet(np.ones(6))
-    pb = newton._prepare(sp.Ys, sp.M, criterion)
-    g = newton._model(pb, newton._value(pb, w)[1], 1.0)
-    D = pb.E[:-1].T
-    ev = evaluate(sp.Ys, w, criterion, sp.M, hessian=True)
-    assert np.allclose(g, ev.g, rtol=1e-9, atol=1e-12 * np.abs(ev.g).max())
-    Q = np.vstack([np.eye(5), -np.ones(5)])  # directions with sum 0: Q^T H Q = A A^T
-    A = Q.T @ D
+    ws = work(6, 3)
+    assert factor_at(F, w, ws)[1]
+    model(F, ws, criterion == "trace", 1.0)
+    Ys = np.einsum("iba,ibc->iac", F, F)  # F_i^T F_i
+    ev = evaluate(Ys, w, criterion, hessian=True)
+    assert np.allclose(ws.g, ev.g, rtol=1e-9, atol=1e-12 * np.abs(ev.g).max())
+    Q = np.vstack([np.eye(5), -np.ones(5)])
+    A = Q.T @ ws.Et[:, :-1]
     H = Q.T @ ev.H @ Q
     assert np.allclose(A @ A.T, H, rtol=1e-8, atol=1e-10 * np.abs(H).max())
 
 
-def test_nearest_point_matches_cvxpy_and_the_face_test():
+def test_nearest_point_matches_cvxpy():
     rng = np.random.default_rng(6)
-    for N, m in ((5, 2), (12, 3), (40, 6)):
+    for N, n in ((5, 1), (12, 2), (40, 3)):
+        ws = work(N, n)
+        m = n * n
         D = rng.standard_normal((N, m)) + 1.5  # 0 outside the hull: a boundary point
-        lam = newton._nearest(np.vstack([D.T, np.ones(N)]), np.full(N, 1.0 / N))
+        ws.Et[:, :m] = D
+        ws.mask[:] = False
+        newton.nearest(ws)
+        lam = ws.x.copy()
         x = cp.Variable(N, nonneg=True)
         cp.Problem(cp.Minimize(cp.sum_squares(D.T @ x)), [cp.sum(x) == 1]).solve("CLARABEL")
         assert abs(lam.sum() - 1) < 1e-14 and lam.min() >= 0
         assert np.linalg.norm(lam @ D) <= np.linalg.norm(x.value @ D) + 1e-8
-        S = np.flatnonzero(lam)
-        assert np.allclose(newton._nearest_on_face(D, S), lam, atol=1e-12)
-        # a face missing a node of the optimum fails Wolfe's test (or is too small to try)
-        assert newton._nearest_on_face(D, S[1:]) is None
+        ws.mask[:] = lam > 0  # warm started on its own support: the same point
+        newton.nearest(ws)
+        assert np.allclose(ws.x, lam, atol=1e-12)
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
 def test_three_nodes_match_a_simplex_grid(criterion):
     covs = instance(np.random.default_rng(7), 3, 2, "random")
-    sp = _scaled(covs, criterion)
-    sol = newton.solve_one(sp.Ys, sp.M, criterion)
+    w, rel, _ = _sqp(covs, criterion)
     a, b = np.meshgrid(np.linspace(0, 1, 401), np.linspace(0, 1, 401))
     keep = a + b <= 1
     grid = np.stack([a[keep], b[keep], 1 - a[keep] - b[keep]], -1)
     f_grid = objective(covs, grid, criterion)
-    f = objective(covs, sol.w[0], criterion)
-    scale_f = abs(f) if criterion == "trace" else 1.0
-    assert sol.converged[0]
-    assert f <= f_grid.min() + 1e-12 * scale_f  # no grid point beats it
-    assert f_grid.min() - f <= 1e-4 * scale_f  # and the grid comes close (spacing 1/400)
+    f = objective(covs, w, criterion)
+    scale = abs(f) if criterion == "trace" else 1.0
+    assert rel <= newton.TOL
+    assert f <= f_grid.min() + 1e-12 * scale  # no grid point beats it
+    assert f_grid.min() - f <= 1e-4 * scale  # and the grid comes close (spacing 1/400)
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("n", [2, 4])
 def test_many_nodes_match_clarabel_with_a_small_support(n, kind, criterion):
-    sp = _scaled(instance(np.random.default_rng(n), 64, n, kind), criterion)
-    sol = newton.solve_one(sp.Ys, sp.M, criterion)
-    ref = REGISTRY["clarabel-direct"](sp.Ys, sp.M, criterion).w
-    f, f_ref = _f(sp, sol.w[0], criterion), _f(sp, np.maximum(ref, 0) / ref.clip(0).sum(),
-                                                 criterion)
-    assert sol.converged[0] and sol.rel_gap[0] <= newton.TOL
-    assert f <= f_ref + 1e-9 * (abs(f_ref) if criterion == "trace" else 1.0)
-    assert (sol.w[0] > 0).sum() <= n * (n + 1) // 2 + 1
+    covs = instance(np.random.default_rng(n), 64, n, kind)
+    means = np.zeros((64, n))
+    r = fo.bci(means, covs, criterion)
+    ref = fo.bci(means, covs, criterion, "clarabel", polish=False)
+    scale = abs(ref.objective) if criterion == "trace" else 1.0
+    assert r.status == "optimal"
+    assert r.objective <= ref.objective + 1e-9 * scale
+    assert (r.weights > 0).sum() <= n * n + 1  # the nearest point's support bound
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
-def test_degenerate_nodes_converge_like_the_batched_solver(criterion):
+def test_sqp_on_pairs_equals_the_one_dimensional_method(criterion):
+    """Two independent algorithms for N = 2: the SQP and the 1-D method of closed_form."""
+    rng = np.random.default_rng(10)
+    for k in range(30):
+        covs = instance(rng, 2, (2, 4, 6)[k % 3], KINDS[k % 2])
+        F, _ = _factors(covs)
+        w_pair, _ = closed_form.pair_weight(F, criterion == "trace", work(2, F.shape[1]))
+        w_sqp, rel, _ = _sqp(covs, criterion)
+        # one evaluation for both (the double inversion of `objective` is not accurate to
+        # 1e-12 on ill-conditioned pairs)
+        f = [evaluate_f(F, np.array([x, 1 - x]), criterion) for x in (w_pair, w_sqp[0])]
+        assert abs(f[0] - f[1]) <= 1e-13 * max(abs(f[1]), 1.0)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_pair_matches_a_grid(criterion):
+    covs = instance(np.random.default_rng(7), 2, 3, "random")
+    F, _ = _factors(covs)
+    w, _ = closed_form.pair_weight(F, criterion == "trace", work(2, 3))
+    ws = np.linspace(0, 1, 20001)
+    f = objective(covs, np.stack([ws, 1 - ws], -1), criterion)
+    assert abs(w - ws[np.argmin(f)]) <= 1e-4
+    assert objective(covs, np.array([w, 1 - w]), criterion) <= f.min() + 1e-14 * abs(f.min())
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_degenerate_nodes_converge(criterion):
+    """Diagonal nodes, repeated nodes and identical nodes (weights not unique, the model's
+    Hessian singular): a certificate within tolerance and no worse than Clarabel."""
     rng = np.random.default_rng(8)
     diagonal = np.einsum("ij,jk->ijk", 10.0 ** rng.uniform(-3, 3, (20, 3)), np.eye(3))
     repeated = np.repeat(instance(rng, 4, 3, "random"), 3, axis=0)
     identical = np.repeat(instance(rng, 1, 3, "random"), 5, axis=0)
     for covs in (diagonal, repeated, identical):
-        sp = _scaled(covs, criterion)
-        sol = newton.solve_one(sp.Ys, sp.M, criterion)
-        batched = newton.solve(sp.Ys[None], sp.M[None], criterion).w[0]
-        assert sol.converged[0]
-        assert _f(sp, sol.w[0], criterion) <= _f(sp, batched, criterion) + 1e-13
+        means = np.zeros(covs.shape[:2])
+        r = fo.bci(means, covs, criterion)
+        ref = fo.bci(means, covs, criterion, "clarabel", polish=False)
+        assert r.status == "optimal"
+        assert r.objective <= ref.objective + 1e-10 * max(abs(ref.objective), 1.0)
+
+
+def test_singular_hessian_many_more_nodes_than_n_squared():
+    covs = instance(np.random.default_rng(3), 12, 1, "random")  # n^2 + 1 = 2 < N = 12
+    w, rel, _ = _sqp(covs, "trace")
+    assert rel <= newton.TOL
+    best = np.argmin(covs[:, 0, 0])  # n = 1: the smallest variance alone is optimal
+    assert objective(covs, w, "trace") <= covs[best, 0, 0] * (1 + 1e-13)
 
 
 def test_start_at_a_vertex_reaches_the_same_optimum():
-    sp = _scaled(instance(np.random.default_rng(9), 7, 3, "ill-conditioned"), "trace")
-    a = newton.solve_one(sp.Ys, sp.M, "trace")
-    b = newton.solve_one(sp.Ys, sp.M, "trace", w0=np.eye(7)[3])
-    assert b.converged[0]
-    assert abs(_f(sp, a.w[0], "trace") - _f(sp, b.w[0], "trace")) <= 1e-12
+    covs = instance(np.random.default_rng(9), 7, 3, "ill-conditioned")
+    a = _sqp(covs, "trace")[0]
+    b, rel, _ = _sqp(covs, "trace", w0=np.eye(7)[3])
+    assert rel <= newton.TOL
+    f = [objective(covs, w, "trace") for w in (a, b)]
+    assert abs(f[0] - f[1]) <= 1e-12 * f[0]
 
 
-def test_qp_iteration_limit_is_a_solver_error(monkeypatch):
-    def stuck(*args, **kwargs):
-        raise RuntimeError("Maximum number of iterations reached.")
-
-    monkeypatch.setattr(newton, "nnls", stuck)
-    with pytest.raises(fo.FusionSolverError, match="newton"):
-        fo.bci(np.zeros((3, 2)), instance(np.random.default_rng(1), 3, 2, "random"),
-               backend="newton")
+def test_zero_failures_on_many_ill_conditioned():
+    rng = np.random.default_rng(11)
+    for k in range(60):
+        n, N, crit = (2, 4, 6)[k % 3], (3, 7, 16)[k // 3 % 3], CRITERIA[k % 2]
+        covs = instance(rng, N, n, "ill-conditioned")
+        assert fo.bci(np.zeros((N, n)), covs, crit).status == "optimal", k
 
 
-@pytest.mark.parametrize("criterion", CRITERIA)
-def test_scalar_pair_solver_equals_the_vectorised_one(criterion):
-    rng = np.random.default_rng(10)
-    for k in range(40):
-        sp = _scaled(instance(rng, 2, (2, 4, 6)[k % 3], KINDS[k % 2]), criterion)
-        lam, T = closed_form.diagonalise_information(sp.Ys[0], sp.Ys[1])
-        c = ((sp.M @ T) * T).sum(0) if criterion == "trace" else lam
-        w_scalar, _ = closed_form._solve_scalar(lam - 1.0, c, criterion)
-        w_batch, _, _ = closed_form.solve_weight((lam - 1.0)[None], c[None], criterion)
-        f = [closed_form.objective(np.array(x), lam - 1.0, c, criterion)
-             for x in (w_scalar, w_batch[0])]
-        assert abs(f[0] - f[1]) <= 1e-13 * max(abs(f[1]), 1.0)
-
-
-def test_no_progress_near_the_optimum_stops_after_a_few_steps(monkeypatch):
-    sp = _scaled(instance(np.random.default_rng(11), 5, 2, "random"), "trace")
-    w = newton.solve_one(sp.Ys, sp.M, "trace", tol=1e-6).w[0]  # in the local phase
-    monkeypatch.setattr(newton, "_nearest", lambda E, w_: w)  # a QP that never moves
-    sol = newton.solve_one(sp.Ys, sp.M, "trace", w0=w)
-    assert not sol.converged[0] and sol.iterations[0] == newton._STALL
-    monkeypatch.setattr(newton, "_nearest", lambda E, w_: np.eye(5)[0])
-    far = newton.solve_one(sp.Ys, sp.M, "trace", w0=np.eye(5)[0], max_iter=12)
-    assert far.rel_gap[0] > 1e-3 and far.iterations[0] == 12  # far away it does not give up
+def test_no_progress_near_the_optimum_stops_after_a_few_steps():
+    """The stall rule: at rounding level the SQP stops after a few steps without a better
+    certificate instead of running to its iteration cap."""
+    covs = instance(np.random.default_rng(11), 5, 2, "random")
+    F, _ = _factors(covs)
+    w = np.full(5, 0.2)
+    rel, it = newton.sqp(F, True, w, work(5, 2), 0.0, 500)  # a tolerance never reached
+    assert rel <= 1e-13 and it < 40
