@@ -90,9 +90,17 @@ def test_two_nodes_follow_the_papers_theorem(seed):
     np.testing.assert_allclose(r.mean, m_c, rtol=1e-5, atol=1e-6)
 
 
-def test_fuse_dispatches_mbci_with_its_arguments():
+def test_fuse_mbci_is_bci_on_the_lemmas_scaled_covariances():
+    """The Lemma written out here, s_i = p_i + (1 - p_i) chi_i prod_{j != i} t_j, and BCI on
+    P_i / s_i; `growth` is 1 / chi."""
     rng = np.random.default_rng(3)
     means, covs = random_instance(rng, 2, 3)
-    r = fo.fuse(means, covs, method="mbci", p_detect=[0.9, 0.8, 0.7], chi=0.9)
-    d = fo.mbci(means, covs, [0.9, 0.8, 0.7], 0.9)
-    np.testing.assert_array_equal(r.cov, d.cov)
+    p, chi = np.array([0.9, 0.8, 0.7]), np.array([0.9, 0.5, 0.8])
+    t = p + (1 - p) * chi
+    s = np.array([p[i] + (1 - p[i]) * chi[i] * np.prod(np.delete(t, i)) for i in range(3)])
+    ref = fo.bci(means, covs / s[:, None, None], "trace", "clarabel")
+    for kw in ({"chi": chi}, {"growth": 1 / chi}):
+        r = fo.fuse(means, covs, method="mbci", p_detect=p, **kw)
+        assert r.method == "mbci"
+        assert r.objective == pytest.approx(ref.objective, rel=1e-12)
+        np.testing.assert_allclose(r.cov, ref.cov, rtol=1e-9)
