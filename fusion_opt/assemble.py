@@ -108,7 +108,7 @@ def _interior(F, means, k, w, ws, trace, mean, cov, stats):
                     t += F[i, a, c] * means[i, c]
                 ws.rhs[r + a] = root * t
             r += n
-    apply_qt(ws.Vt, rows, ws.rhs)
+    apply_qt(ws.Vt, n, rows, ws.rhs)
     for a in range(n):  # mean = R^-1 (Q^T b)[:n]
         t = 0.0
         for c in range(a, n):

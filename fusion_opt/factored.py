@@ -87,7 +87,7 @@ def factor_at(F, w, ws: Work):
                 for b in range(n):
                     ws.At[b, rows + a] = r * F[i, a, b]
             rows += n
-    householder(ws.At, rows, ws.Vt, ws.R)
+    householder(ws.At, n, rows, ws.Vt, ws.R)
     for k in range(n):
         if not ws.R[k, k] != 0.0 or not np.isfinite(ws.R[k, k]):
             return rows, False

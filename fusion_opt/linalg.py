@@ -8,10 +8,10 @@ columns the products are loops written here; above it they call BLAS, and `eigh`
 
     cholesky(A, L)            A = L L^T, L lower; False if A is not positive definite
     lower_inverse(L, X)       X = L^-1, L lower triangular; upper_inverse(R, X) likewise
-    householder(At, rows, Vt, R)  QR of A given as At = A^T (columns contiguous): reflectors
-                              in Vt, R upper (R_kk of either sign)
-    apply_qt(Vt, rows, b)     b[:rows] <- Q^T b[:rows]
-    thin_qt(Vt, rows, Qt)     Qt = the first n columns of Q, transposed
+    householder(At, n, rows, Vt, R)  QR of A given as At = A^T (columns contiguous):
+                              reflectors in Vt, R upper (R_kk of either sign)
+    apply_qt(Vt, n, rows, b)  b[:rows] <- Q^T b[:rows]
+    thin_qt(Vt, n, rows, Qt)  Qt = the first n columns of Q, transposed
     eigh(S, lam, V)           S = V diag(lam) V^T, lam ascending (Jacobi when small)
     matmul(A, B, C), gram(B, G)   C = A B, G = B^T B
 """
@@ -82,12 +82,12 @@ def upper_inverse(R, X):
 
 
 @jit
-def householder(At, rows, Vt, R):
-    """QR of A = At[:, :rows]^T (rows >= n), given transposed so that every column of A is
+def householder(At, n, rows, Vt, R):
+    """QR of A = At[:n, :rows]^T (rows >= n), given transposed so that every column of A is
     a contiguous row: At is overwritten, the unit reflectors v_k (H_k = I - 2 v v^T) go to
-    Vt[k, k:rows], R (n, n) is upper triangular (R_kk of either sign). Q = H_0 ... H_{n-1}.
-    (Rows are indexed, not sliced: a view costs more than this arithmetic at n = 4.)"""
-    n = At.shape[0]
+    Vt[k, k:rows], R[:n, :n] is upper triangular (R_kk of either sign). Q = H_0 ... H_{n-1}.
+    Whole buffers and sizes are passed, not slices: each array layout would compile anew,
+    and at n = 4 a view costs more than the arithmetic."""
     for k in range(n):
         norm = 0.0
         for i in range(k, rows):
@@ -125,9 +125,9 @@ def _reflect(X, j, Vt, k, rows):
 
 
 @jit
-def apply_qt(Vt, rows, b):
-    """b[:rows] <- Q^T b[:rows] with the reflectors of `householder`."""
-    for k in range(Vt.shape[0]):
+def apply_qt(Vt, n, rows, b):
+    """b[:rows] <- Q^T b[:rows] with the n reflectors of `householder`."""
+    for k in range(n):
         t = 0.0
         for i in range(k, rows):
             t += Vt[k, i] * b[i]
@@ -137,9 +137,8 @@ def apply_qt(Vt, rows, b):
 
 
 @jit
-def thin_qt(Vt, rows, Qt):
-    """Qt[:, :rows] (n, rows) = the transpose of the first n columns of Q."""
-    n = Vt.shape[0]
+def thin_qt(Vt, n, rows, Qt):
+    """Qt[:n, :rows] = the transpose of the first n columns of Q (n reflectors)."""
     for j in range(n):
         for i in range(rows):
             Qt[j, i] = 1.0 if i == j else 0.0

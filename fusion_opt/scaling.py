@@ -30,7 +30,7 @@ def conic_data(F, Ys, M):
             for r in range(n):
                 for c in range(n):
                     ws.At[c, i * n + r] = F[b, i, r, c] / np.sqrt(N)
-        householder(ws.At, N * n, ws.Vt, ws.R)
+        householder(ws.At, n, N * n, ws.Vt, ws.R)
         upper_inverse(ws.R, ws.Ri)  # Rb^-1
         for i in range(N):
             matmul(F[b, i], ws.Ri, ws.B)

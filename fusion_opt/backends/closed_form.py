@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..linalg import eigh, householder, jit, matmul, matmul_t, thin_qt, upper_inverse
+from ..linalg import eigh, householder, jit, matmul, thin_qt, upper_inverse
 
 _EPS = np.finfo(np.float64).eps
 _MAX_ITER = 100  # a guard: the bracket halves at least every other step
@@ -47,17 +47,26 @@ def pair_weight(F, trace: bool, ws):
 def diagonalise(F, trace: bool, ws):
     """a, b, c (n,) of the module docstring: d_k(w) = b_k + w a_k and the trace weights."""
     n = F.shape[1]
-    At = ws.At[:, :2 * n]
+    At = ws.At  # [F_a; F_b]^T in its first 2n columns
     for a in range(n):
         for b in range(n):
             At[b, a], At[b, n + a] = F[0, a, b], F[1, a, b]
-    householder(At, 2 * n, ws.Vt, ws.R)
-    thin_qt(ws.Vt, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
-    Qat, Qbt = At[:, :n], At[:, n:]
-    matmul_t(Qat, Qat, ws.S)  # Q_a^T Q_a
+    householder(At, n, 2 * n, ws.Vt, ws.R)
+    thin_qt(ws.Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
+    for a in range(n):  # S = Q_a^T Q_a
+        for b in range(a, n):
+            t = 0.0
+            for r in range(n):
+                t += At[a, r] * At[b, r]
+            ws.S[a, b] = ws.S[b, a] = t
     eigh(ws.S, ws.lam, ws.U)
-    matmul(Qat.T, ws.U, ws.B)  # Q_a V
-    matmul(Qbt.T, ws.U, ws.X)
+    for r in range(n):  # B = Q_a V, X = Q_b V
+        for k in range(n):
+            ta = tb = 0.0
+            for a in range(n):
+                ta += At[a, r] * ws.U[a, k]
+                tb += At[a, n + r] * ws.U[a, k]
+            ws.B[r, k], ws.X[r, k] = ta, tb
     nu, tau, c = np.empty(n), np.empty(n), np.ones(n)
     for k in range(n):
         nu[k], tau[k] = _column_sumsq(ws.B, k), _column_sumsq(ws.X, k)

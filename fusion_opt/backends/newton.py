@@ -232,8 +232,8 @@ def _least_squares(ws) -> bool:
             for p in range(M):
                 ws.Elt[k, p] = Et[i, p]
             k += 1
-    At, Vt, R = ws.Elt[:k], ws.Vlt[:k], ws.Rls[:k, :k]
-    householder(At, M, Vt, R)
+    R = ws.Rls
+    householder(ws.Elt, k, M, ws.Vlt, R)
     top, low = 0.0, np.inf
     for c in range(k):
         top, low = max(top, abs(R[c, c])), min(low, abs(R[c, c]))
@@ -242,7 +242,7 @@ def _least_squares(ws) -> bool:
     rhs = ws.r  # Q^T e, then back substitution with R
     fill(rhs, 0.0)
     rhs[M - 1] = 1.0
-    apply_qt(Vt, M, rhs)
+    apply_qt(ws.Vlt, k, M, rhs)
     for c in range(k - 1, -1, -1):
         t = rhs[c]
         for d in range(c + 1, k):
