@@ -232,11 +232,12 @@ def _check_estimates(estimates) -> None:
 
 # --- fusion ----------------------------------------------------------------------------------
 
-def fuse_states(states, method: str = "bci", criterion: str = "trace", backend: str = "clarabel",
-                **method_args) -> GaussianState:
+def fuse_states(states, method: str = "bci", criterion: str = "trace",
+                backend: str | None = None, **method_args) -> GaussianState:
     """Fuse Stone Soup states (or Tracks' latest states) at one timestamp with any rule of
     `fusion_opt.fuse` (its method, criterion, backend and method_args, e.g. p_detect and chi
-    for "mbci"); states[i] is node i.
+    for "mbci"; backend None is fuse's default, and the rules without weights take none);
+    states[i] is node i.
 
     Returns a GaussianState at the common timestamp whose attribute `metadata` holds
     "weights" (N,), "gap" (the optimality certificate) and "fusion_result" (the FusionResult).
@@ -271,8 +272,9 @@ class OptimalChernoffUpdater(Updater):
     """
 
     criterion: str = Property(default="trace", doc='"trace" or "logdet": what omega minimises')
-    backend: str = Property(default="clarabel", doc="A weight solver of fusion_opt.BACKENDS; "
-                            '"closed-form" is the fastest for a pair')
+    backend: str = Property(default="newton", doc="A weight solver of fusion_opt.BACKENDS "
+                            '(default the exact compiled one; "clarabel" is the conic '
+                            'reference)')
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

@@ -78,16 +78,16 @@ def _fused(config, sc, a, b) -> dict:
     covs = np.stack([a[1], b[1]], axis=1)  # (T, 2, n, n)
     backend = config["backend"]
     chi = 1.0 / config["fusion"]["chi_inv"]
-    rules = {"CI": dict(method="ci"), "naive": dict(method="naive"),
-             "modified CI": dict(method="mbci", p_detect=list(sc.p_detect), chi=chi),
-             "BCI logdet": dict(method="bci", criterion="logdet")}
-    return {row: _fuse_series(means, covs, backend, **kw) for row, kw in rules.items()}
+    rules = {"CI": dict(method="ci", backend=backend), "naive": dict(method="naive"),
+             "modified CI": dict(method="mbci", backend=backend, p_detect=list(sc.p_detect),
+                                 chi=chi),
+             "BCI logdet": dict(method="bci", backend=backend, criterion="logdet")}
+    return {row: _fuse_series(means, covs, **kw) for row, kw in rules.items()}
 
 
-def _fuse_series(means, covs, backend, method, criterion="trace", **args):
+def _fuse_series(means, covs, method, criterion="trace", **args):
     """Fuse every step: means (T, N, n), covs (T, N, n, n) -> (T, n), (T, n, n)."""
-    r = fo.fuse_batch(means, covs, method=method, criterion=criterion, backend=backend,
-                      **args)
+    r = fo.fuse_batch(means, covs, method=method, criterion=criterion, **args)
     return r.mean, r.cov
 
 

@@ -10,7 +10,7 @@ from studies.__main__ import STUDIES, _module, main
 CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[fusion]\nchi_inv = 0.5\n", "table1: fusion.chi_inv must be a finite number "
      ">= 1 (the paper's chi^-1"),
-    ("table1", 'backend = "gurobi"\n', "backend must be one of ['clarabel'"),
+    ("table1", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("table1", "[fusion]\nchi = 2.0\n", "[fusion] has unknown field(s) ['chi']"),
     ("table1", "fusion = 3\n", "[fusion] must be a table, got 3"),
     ("table1", "[fusion]\nwindow = [15.0, 13.0]\n", "fusion.window must be [start, end]"),

@@ -1,0 +1,110 @@
+"""The API as a user meets it: one convention for the growth factor, results that say what
+they hold, warmup, the memory limits, and the fallback of an uncertified native solve."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import random_instance
+
+import fusion_opt as fo
+from fusion_opt import core
+
+MEANS, COVS = random_instance(np.random.default_rng(0), 3, 4)
+P = [0.9, 0.6, 0.8, 0.7]
+
+
+@pytest.mark.parametrize("call", [
+    lambda kw: fo.mbci(MEANS, COVS, P, **kw),
+    lambda kw: fo.fuse(MEANS, COVS, method="mbci", p_detect=P, **kw),
+    lambda kw: fo.fuse_batch(MEANS[None], COVS[None], "mbci", p_detect=P, **kw),
+])
+def test_growth_is_the_inverse_of_chi_everywhere(call):
+    by_growth, by_chi = call({"growth": 1.25}), call({"chi": 0.8})
+    np.testing.assert_array_equal(by_growth.cov, by_chi.cov)
+    with pytest.raises(fo.FusionInputError, match="exactly one of chi"):
+        call({"growth": 1.25, "chi": 0.8})
+    with pytest.raises(fo.FusionInputError, match="growth must be >= 1"):
+        call({"growth": 0.5})
+
+
+def test_detection_scales_take_growth_too():
+    np.testing.assert_array_equal(fo.detection_scales(P, growth=2.0),
+                                  fo.detection_scales(P, 0.5))
+    with pytest.raises(fo.FusionInputError, match="exactly one of chi"):
+        fo.detection_scales(P)
+
+
+def test_processing_node_takes_growth():
+    node = fo.ProcessingNode(["a", "b"], threshold=1.0, p_detect={"a": 0.9, "b": 0.5},
+                             growth=1.1)
+    assert node.chi == pytest.approx(1 / 1.1)
+
+
+def test_results_say_what_their_weights_are():
+    r = fo.fuse(MEANS, COVS, method="naive")
+    assert r.weights_are == "gain_shares" and "gain shares" in repr(r)
+    assert r.status == fo.Status.CLOSED_FORM and r.backend is None
+    b = fo.bci(MEANS, COVS)
+    assert b.weights_are == "ci_weights" and "CI weights" in repr(b)
+
+
+def test_batch_repr_is_a_summary_and_iterations_are_integers():
+    r = fo.fuse_batch(np.repeat(MEANS[None], 500, 0), np.repeat(COVS[None], 500, 0))
+    assert r.iterations.dtype == np.int64 and len(repr(r)) < 400 and "B=500" in repr(r)
+
+
+def test_a_rule_refuses_a_backend():
+    with pytest.raises(fo.FusionInputError, match="no weight solver"):
+        fo.fuse(MEANS, COVS, method="naive", backend="clarabel")
+
+
+def test_warmup_fuses_a_problem_of_the_shape():
+    assert fo.warmup(3, 4) >= 0.0
+    with pytest.raises(fo.FusionInputError, match="n must be an integer"):
+        fo.warmup(0, 4)
+
+
+def test_conic_memory_limit_refuses_before_allocating():
+    covs = np.broadcast_to(np.eye(200), (3, 200, 200))
+    with pytest.raises(fo.FusionSolverError, match=r"'clarabel'.*n = 200.*GiB") as err:
+        fo.bci(np.zeros((3, 200)), covs, backend="clarabel")
+    assert err.value.status == "memory_limit"
+
+
+def test_limits_are_settable_and_checked(monkeypatch):
+    monkeypatch.setattr(fo.limits, "working_memory", fo.limits.working_memory)
+    fo.limits.working_memory = 1e3
+    with pytest.raises(fo.FusionSolverError, match="working_memory"):
+        fo.bci(MEANS, COVS)
+    with pytest.raises(ValueError, match="positive number of bytes"):
+        fo.limits.working_memory = -1
+
+
+def test_an_uncertified_native_solve_is_rescued_from_clarabels_weights(monkeypatch):
+    """If the compiled solve ends above OPTIMAL_RTOL (rounding on a hard problem), the
+    core solves again from Clarabel's weights and keeps the better certificate."""
+    real = core.fuse_exact
+
+    def spoiled(*args):
+        code = real(*args)
+        W, rel = args[10], args[11]
+        W[:] = np.eye(W.shape[1])[0]  # a vertex that is not the optimum
+        rel[:] = 1.0
+        return code
+
+    monkeypatch.setattr(core, "fuse_exact", spoiled)
+    r = fo.bci(MEANS, COVS)
+    monkeypatch.undo()
+    ref = fo.bci(MEANS, COVS, backend="clarabel")
+    assert r.status == "optimal" and r.objective == pytest.approx(ref.objective, rel=1e-12)
+
+
+def test_readme_examples_run():
+    """Every python block of the README runs as written (Stone Soup's only with its extra)."""
+    text = Path(__file__).parents[1].joinpath("README.md").read_text()
+    for block in re.findall(r"```python\n(.*?)```", text, re.S):
+        if "stonesoup" in block:
+            pytest.importorskip("stonesoup")
+        exec(compile(block, "README.md", "exec"), {})
