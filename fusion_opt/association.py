@@ -32,8 +32,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -148,8 +146,7 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
     keep = (d < threshold) & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
     pairs, d = pairs[keep], d[keep]
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(M, M))
-    label = connected_components(graph, directed=False)[1]  # (M,) component of each point
+    label = _components(pairs, M)
     conflicted = _repeats_a_source(label, owner)
     inside = conflicted[pairs[:, 0]]
     for members in _ordered_joins(pairs[inside], d[inside], owner, np.flatnonzero(conflicted)):
@@ -157,6 +154,23 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     order = np.argsort(label, kind="stable")  # stable: members stay in report order
     groups = np.split(order, np.flatnonzero(np.diff(label[order])) + 1)
     return sorted(groups, key=lambda g: g[0])
+
+
+def _components(pairs: np.ndarray, M: int) -> np.ndarray:
+    """(M,) a label per point, equal exactly within the connected components of the graph
+    of pairs (P, 2): the smallest point index of the component. Min-label propagation with
+    pointer jumping, in array operations (scipy's sparse connected_components costs 150 us
+    of setup, more than a whole fusion of a few estimates)."""
+    label = np.arange(M)
+    while True:
+        low = np.minimum(label[pairs[:, 0]], label[pairs[:, 1]])
+        new = label.copy()
+        np.minimum.at(new, pairs[:, 0], low)
+        np.minimum.at(new, pairs[:, 1], low)
+        new = new[new]  # jump: a label is a smaller point index, whose own label is <= it
+        if np.array_equal(new, label):
+            return label
+        label = new
 
 
 def _repeats_a_source(label: np.ndarray, owner: np.ndarray) -> np.ndarray:

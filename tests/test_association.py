@@ -143,3 +143,20 @@ def test_bad_reports_are_named():
                "b": fo.Estimates(np.zeros((1, 3)), np.eye(3)[None])}
     with pytest.raises(fo.FusionInputError, match="different state dimensions.*'a': 2.*'b': 3"):
         fo.associate(reports, 1.0)
+
+
+def test_components_equal_scipys_connected_components():
+    """The array union of `_nearest` against scipy's graph components on random graphs."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from fusion_opt.association import _components
+
+    rng = np.random.default_rng(3)
+    for M, P in [(1, 0), (5, 0), (10, 4), (50, 40), (200, 150), (200, 600)]:
+        pairs = np.sort(rng.integers(0, M, (P, 2)), axis=1).reshape(P, 2)
+        label = _components(pairs, M)
+        graph = coo_matrix((np.ones(P), (pairs[:, 0], pairs[:, 1])), shape=(M, M))
+        ref = connected_components(graph, directed=False)[1]
+        same, same_ref = label[:, None] == label[None], ref[:, None] == ref[None]
+        np.testing.assert_array_equal(same, same_ref)
