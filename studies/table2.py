@@ -1,10 +1,12 @@
 """Table 2: unknown number of targets; 7 RBMCDA nodes, 3 processing nodes fusing with CI
 and modified CI.
 
-Each run simulates the scenario, runs RBMCDA at every monitoring node, and at each
-processing node and step associates its neighbours' estimates (fusion_opt.association)
-and fuses every group of two or more with CI (BCI, trace) and with modified CI (MBCI with
-the group's p_D and chi^-1 = 1 + dt); an estimate no other node shares is passed on as is.
+Each run simulates the scenario and steps one `fusion_opt.Network` over it: an RBMCDA
+tracker per monitoring node, and per processing node two `ProcessingNode`s over its
+neighbours, which associate the neighbours' estimates at every step and fuse every group
+of two or more with CI (BCI, trace) and with modified CI (MBCI with the group's p_D and
+chi^-1 = 1 + dt); an estimate no other node shares is passed on as is. The study only
+configures the network and scores what it reports.
 
 Scores per node (DESIGN §3 leaves the paper's "sum over detected targets" open; ours):
 each step, estimates are matched to the alive targets by optimal assignment on position,
@@ -27,7 +29,6 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 import fusion_opt as fo
-from fusion_opt.association import associate
 from trackers import metrics, rbmcda
 from trackers.scenarios import Table2Config, simulate_table2
 
@@ -84,71 +85,42 @@ def check(config: dict) -> None:
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):
-    """One run: (data, {row: list over steps of (means (m, 4), covs (m, 4, 4))})."""
+    """One run: (data, {row: list over steps of Estimates}), the rows being the monitoring
+    nodes "RBMCDA k" and, per processing node p, "CI p" and "modified CI p"."""
     sc = scenario(config)
     sim_rng, *node_rngs = (np.random.default_rng(s) for s in seed.spawn(1 + len(sc.p_detect)))
     data = simulate_table2(sc, sim_rng)
+    trackers = _monitoring(sc, node_rngs)
+    scans = [{name: node.scans[t] for name, node in zip(trackers, data.nodes, strict=True)}
+             for t in range(sc.n_steps)]
+    return data, fo.Network(trackers, _processing(config, sc)).run(scans)
+
+
+def _monitoring(sc: Table2Config, rngs) -> dict[str, rbmcda.RBMCDA]:
+    """The monitoring nodes: an RBMCDA named "RBMCDA k" (k = 1, 2, ...) per node."""
     model, (m0, P0) = sc.filter_model(), sc.prior()
-    out = {}
-    for k, (node, rng) in enumerate(zip(data.nodes, node_rngs, strict=True), start=1):
-        tracks = rbmcda.run(node.scans, model, m0, P0, rng=rng, dt=sc.dt,
-                            n_particles=sc.n_particles, birth_prob=sc.birth_prob,
-                            lifetime_shape=sc.lifetime_shape,
-                            lifetime_scale=sc.lifetime_scale,
-                            clutter_prior=sc.clutter_prior,
-                            clutter_density=sc.clutter_density,
-                            resample_threshold=sc.resample_threshold)
-        out[f"RBMCDA {k}"] = [_stack(step) for step in tracks]
-    for proc, neighbours in config["network"]["neighbours"].items():
-        out.update(_processing_node(config, sc, proc, neighbours, out))
-    return data, out
+    return {f"RBMCDA {k}": rbmcda.RBMCDA(
+        model, m0, P0, rng=rng, dt=sc.dt, n_particles=sc.n_particles,
+        birth_prob=sc.birth_prob, lifetime_shape=sc.lifetime_shape,
+        lifetime_scale=sc.lifetime_scale, clutter_prior=sc.clutter_prior,
+        clutter_density=sc.clutter_density, resample_threshold=sc.resample_threshold,
+        name=f"RBMCDA {k}") for k, rng in enumerate(rngs, start=1)}
 
 
-def _stack(tracks) -> tuple[np.ndarray, np.ndarray]:
-    if not tracks:
-        return np.zeros((0, 4)), np.zeros((0, 4, 4))
-    return np.array([t.mean for t in tracks]), np.array([t.cov for t in tracks])
-
-
-def _processing_node(config, sc, proc, neighbours, out) -> dict:
-    """Rows "CI proc" and "modified CI proc": per step, fused groups plus singletons."""
+def _processing(config: dict, sc: Table2Config) -> dict[str, fo.ProcessingNode]:
+    """Per processing node p of network.neighbours, "CI p" (BCI, trace) and "modified CI p"
+    (MBCI with each neighbour's p_D and chi = 1 / chi_inv), both over its neighbours."""
     net, chi = config["network"], 1.0 / config["fusion"]["chi_inv"]
-    p_all = np.array(sc.p_detect)
-    T = sc.n_steps
-    groups = [associate([out[f"RBMCDA {k}"][t][0] for k in neighbours], net["threshold"],
-                        net["association"], dims=POSITION) for t in range(T)]
-    rows = {}
-    for row, method in ((f"CI {proc}", "bci"), (f"modified CI {proc}", "mbci")):
-        fused = _fuse_groups(groups, neighbours, out, method, p_all, chi, config["backend"])
-        rows[row] = fused
-    return rows
-
-
-def _fuse_groups(groups, neighbours, out, method, p_all, chi, backend):
-    """Fuse all groups of each size in one batch; singletons pass through."""
-    steps: list[list] = [[] for _ in groups]
-    by_size = defaultdict(list)  # size -> [(t, group)]
-    for t, gs in enumerate(groups):
-        for g in gs:
-            by_size[len(g)].append((t, g))
-    for size, items in by_size.items():
-        means = np.array([[out[f"RBMCDA {neighbours[k]}"][t][0][i] for k, i in g]
-                          for t, g in items])
-        covs = np.array([[out[f"RBMCDA {neighbours[k]}"][t][1][i] for k, i in g]
-                         for t, g in items])
-        if size == 1:
-            fused_m, fused_c = means[:, 0], covs[:, 0]
-        else:
-            args = {}
-            if method == "mbci":
-                args = dict(p_detect=np.array([[p_all[neighbours[k] - 1] for k, _ in g]
-                                               for _, g in items]), chi=chi)
-            r = fo.fuse_batch(means, covs, method=method, backend=backend, **args)
-            fused_m, fused_c = r.mean, r.cov
-        for (t, _), m, c in zip(items, fused_m, fused_c, strict=True):
-            steps[t].append((m, c))
-    return [(np.array([m for m, _ in s]).reshape(-1, 4), np.array([c for _, c in s])
-             .reshape(-1, 4, 4)) for s in steps]
+    nodes = {}
+    for proc, members in net["neighbours"].items():
+        sources = [f"RBMCDA {k}" for k in members]
+        mbci = dict(p_detect={f"RBMCDA {k}": sc.p_detect[k - 1] for k in members}, chi=chi)
+        for row, method, extra in (("CI", "bci", {}), ("modified CI", "mbci", mbci)):
+            nodes[f"{row} {proc}"] = fo.ProcessingNode(
+                sources, method=method, backend=config["backend"],
+                association=net["association"], threshold=net["threshold"], dims=POSITION,
+                name=f"{row} {proc}", **extra)
+    return nodes
 
 
 def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dict, dict]:
@@ -171,16 +143,17 @@ def figure_data(data, est) -> dict:
             "n_alive": data.n_alive,
             "paths": [data.truth[j, data.alive[j], :2] for j in range(len(data.truth))],
             "measurements": data.nodes[node - 1].values,
-            "estimates": {key: np.concatenate([m[:, :2] for m, _ in est[row]])
+            "estimates": {key: np.concatenate([e.means[:, :2] for e in est[row]])
                           for key, row in rows.items()},
-            "counts": {key: [len(m) for m, _ in est[row]] for key, row in rows.items()}}
+            "counts": {key: [len(e) for e in est[row]] for key, row in rows.items()}}
 
 
 def _scores(config, data, series) -> dict:
     c, p = config["metrics"]["cutoff"], config["metrics"]["order"]
     per_target = {k: defaultdict(list) for k in ("mse", "mncm", "mse_pos", "mncm_pos")}
     ospa, gospa, card = [], [], []
-    for t, (means, covs) in enumerate(series):
+    for t, e in enumerate(series):
+        means, covs = e.means, e.covs
         alive = np.flatnonzero(data.alive[:, t])
         truth = data.truth[alive, t]
         ospa.append(metrics.ospa(means[:, POSITION], truth[:, POSITION], c, p))
