@@ -11,11 +11,11 @@ common error every node can hold; no rule can remove c). A rule with gains K_i
 Scores over `draws` error draws: MSE, ANEES (with its chi-square band), and exactly:
 tr(K S K^T) and whether P - K S K^T is PSD (consistency).
 
-Dynamic case: N Kalman filters track one common target (the Table 1 model, a = 0), each
-detecting with its own p_i; their errors are correlated through the common prior and
-process noise, and the cross-covariances follow the exact recursion
-C_ij <- (I - K_i H)(A C_ij A^T + Q)(I - K_j H)^T (+ K_i R K_i^T when i = j), which the
-known-cross rule uses. A fusion centre fuses every step.
+Dynamic case: N Kalman filters (trackers.kalman.KalmanFilter) track one common target
+(the Table 1 model, a = 0), each detecting with its own p_i, and report every step to a
+fusion centre, one fusion_opt.ProcessingNode per rule. Their errors are correlated
+through the common prior and process noise; the cross-covariances follow the exact
+recursion of trackers.kalman.cross_covariance_step, which the known-cross rule uses.
 
 Scaling: solve time of one fusion against N (n = 4) and against n, per backend, with the
 log-log slope; measured once after the runs (scaling.json).
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import fusion_opt as fo
-from trackers import metrics
+from trackers import kalman, metrics
 from trackers.models import turn_model
 
 from . import config as configs
@@ -86,6 +86,7 @@ DYNAMIC = {
     "r": lambda w, x: configs.number(w, x, above=0),
     "p_center": _probability, "spread": lambda w, x: configs.number(w, x, low=0),
     "p_min": lambda w, x: configs.number(w, x, high=1, above=0), "chi_inv_assumed": _growth,
+    "threshold": lambda w, x: configs.number(w, x, above=0),
 }
 
 
@@ -255,59 +256,98 @@ def static_scores(cfg: dict, rng, backend: str) -> dict:
 
 # ----------------------------------------------------------------------- dynamic case
 
-def simulate_network(dcfg: dict, N: int, rng) -> dict:
-    """Truth (T, n) and per-node KF means (T, N, n), covs (T, N, n, n), cross-covariances
-    (T, N, N, n, n) and p (N,)."""
-    model = turn_model(0.0, dcfg["q"], dcfg["r"], dcfg["dt"])
-    A, Q, H, R = model.A, model.Q, model.H, model.R
+def simulate_target(dcfg: dict, N: int, rng) -> dict:
+    """One target seen by N nodes: truth (T, n), scans (T, N) of measurements (k, 2) with
+    k = 1 where node i detected at step t and 0 where it missed, detected (T, N) and the
+    detection probabilities p (N,)."""
+    model = dynamic_model(dcfg)
     n, T = model.n, dcfg["steps"]
     p = detection_probabilities(dcfg, N, rng)
-    m0, P0 = np.array([0.0, 0.0, 1.0, 0.0]), np.eye(n)
+    m0, P0 = dynamic_prior(n)
     x = m0 + np.linalg.cholesky(P0) @ rng.standard_normal(n)
-    m = np.tile(m0, (N, 1))
-    C = np.broadcast_to(P0, (N, N, n, n)).copy()  # the prior error is common to all nodes
-    out = {k: [] for k in ("truth", "means", "covs", "cross")}
-    Lq = np.linalg.cholesky(Q)
-    for _ in range(T):
-        x = A @ x + Lq @ rng.standard_normal(n)
-        m, C = m @ A.T, A @ C @ A.T + Q
-        detected = rng.random(N) < p
+    Lq = np.linalg.cholesky(model.Q)
+    truth, detected, scans = np.empty((T, n)), np.empty((T, N), dtype=bool), []
+    for t in range(T):
+        x = model.A @ x + Lq @ rng.standard_normal(n)
+        detected[t] = rng.random(N) < p
         y = x[:2] + np.sqrt(dcfg["r"]) * rng.standard_normal((N, 2))
-        m, C = _update_network(m, C, y, detected, H, R)
-        for key, val in (("truth", x), ("means", m), ("cross", C)):
-            out[key].append(val.copy())
-        out["covs"].append(C[np.arange(N), np.arange(N)].copy())
-    return {k: np.array(v) for k, v in out.items()} | {"p": p}
+        truth[t] = x
+        scans.append([y[i:i + 1] if detected[t, i] else y[:0] for i in range(N)])
+    return {"truth": truth, "scans": scans, "detected": detected, "p": p}
 
 
-def _update_network(m, C, y, detected, H, R):
-    """Kalman update of the detecting nodes and the cross-covariance recursion."""
-    N, n = m.shape
-    P = C[np.arange(N), np.arange(N)]
-    S = H @ P @ H.T + R
-    K = P @ H.T @ np.linalg.inv(S) * detected[:, None, None]  # (N, n, d), 0 if missed
-    m = m + np.einsum("iab,ib->ia", K, y - m @ H.T)
-    M = np.eye(n) - K @ H
-    C = M[:, None] @ C @ np.swapaxes(M, -1, -2)[None, :]
-    C[np.arange(N), np.arange(N)] += K @ R @ np.swapaxes(K, -1, -2)
-    return m, 0.5 * (C + np.swapaxes(np.swapaxes(C, 0, 1), -1, -2))
+def dynamic_model(dcfg: dict):
+    """The nodes' model and the truth's: the Table 1 model with turn rate a = 0."""
+    return turn_model(0.0, dcfg["q"], dcfg["r"], dcfg["dt"])
+
+
+def dynamic_prior(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The common prior (m0 (n,), P0 (n, n)) of the truth and of every node's filter."""
+    return np.array([0.0, 0.0, 1.0, 0.0]), np.eye(n)
+
+
+def fusion_centre(name: str, N: int, dcfg: dict, p, backend: str) -> fo.ProcessingNode:
+    """A ProcessingNode fusing the N nodes (sources 0..N-1) by rule `name` of RULES (not
+    "known cross": a processing node does not know cross-covariances). One target: its
+    threshold is set so far above any error that every step forms one group."""
+    spec = dict(RULES[name])
+    if spec["method"] == "mbci":
+        spec.update(p_detect=dict(enumerate(p)), chi=1.0 / dcfg["chi_inv_assumed"])
+    if spec["method"] in OPTIMISED:
+        spec["backend"] = backend
+    return fo.ProcessingNode(range(N), threshold=dcfg["threshold"], min_sources=N,
+                             name=name, **spec)
 
 
 def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
-    net = simulate_network(dcfg, N, rng)
-    b = dcfg["burn_in"]
-    truth, means, covs, cross = (net[k][b:] for k in ("truth", "means", "covs", "cross"))
-    chi = 1.0 / dcfg["chi_inv_assumed"]
-    out = {}
-    for name in RULES:
-        t0 = time.perf_counter()
-        r = fuse_rule(name, means, covs, p=net["p"], chi=chi, backend=backend, cross=cross,
-                      batch=True)  # every step at once
-        wall = (time.perf_counter() - t0) / len(means)
-        out[name] = {"mse": metrics.mse(r.mean, truth),
-                     "anees": metrics.anees(r.mean, truth, r.cov),
-                     "trace": float(np.mean(np.trace(r.cov, axis1=1, axis2=2))), "time": wall}
+    """MSE, ANEES, mean fused trace and time per fusion (s) of every rule over the steps
+    after burn_in: N trackers.kalman.KalmanFilter nodes report each step to one
+    ProcessingNode per rule; "known cross" fuses with the nodes' exact joint error
+    covariance from trackers.kalman.cross_covariance_step, every step in one fuse_batch."""
+    sim = simulate_target(dcfg, N, rng)
+    model, (m0, P0) = dynamic_model(dcfg), dynamic_prior(4)
+    filters = [kalman.KalmanFilter(model, m0, P0) for _ in range(N)]
+    centres = {name: fusion_centre(name, N, dcfg, sim["p"], backend)
+               for name in RULES if name != "known cross"}
+    C = np.broadcast_to(P0, (N, N, 4, 4)).copy()  # the prior error is common to all nodes
+    fused = {name: [] for name in centres}
+    wall = dict.fromkeys(centres, 0.0)
+    means, cross = [], []
+    for t, scans in enumerate(sim["scans"]):
+        reports = {i: f.step(scan) for i, (f, scan) in enumerate(zip(filters, scans,
+                                                                       strict=True))}
+        C = kalman.cross_covariance_step(C, sim["detected"][t], model)[0]
+        if t < dcfg["burn_in"]:
+            continue
+        means.append([r.means[0] for r in reports.values()])
+        cross.append(C)
+        for name, centre in centres.items():
+            t0 = time.perf_counter()
+            fused[name].append(_one_track(centre.step(reports), name))
+            wall[name] += time.perf_counter() - t0
+    truth, steps = sim["truth"][dcfg["burn_in"]:], len(means)
+    out = {name: _dynamic_row([e.means[0] for e in est], [e.covs[0] for e in est], truth,
+                              wall[name] / steps) for name, est in fused.items()}
+    cross = np.array(cross)
+    t0 = time.perf_counter()
+    known = fo.fuse_batch(np.array(means), np.diagonal(cross, axis1=1, axis2=2).transpose(
+        0, 3, 1, 2), method="known-cross", cross=cross)
+    out["known cross"] = _dynamic_row(known.mean, known.cov, truth,
+                                      (time.perf_counter() - t0) / steps)
     return out
+
+
+def _one_track(fused: fo.Estimates, name: str) -> fo.Estimates:
+    if len(fused) != 1:
+        raise RuntimeError(f"nnode: the fusion centre {name!r} did not join the N estimates "
+                           f"of the one target (dynamic.threshold too small?)")
+    return fused
+
+
+def _dynamic_row(means, covs, truth, seconds) -> dict:
+    means, covs = np.asarray(means), np.asarray(covs)
+    return {"mse": metrics.mse(means, truth), "anees": metrics.anees(means, truth, covs),
+            "trace": float(np.mean(np.trace(covs, axis1=1, axis2=2))), "time": seconds}
 
 
 # ------------------------------------------------------------------------------ runs

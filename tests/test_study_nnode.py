@@ -4,6 +4,7 @@ show against the known truth."""
 import numpy as np
 import pytest
 
+import fusion_opt as fo
 from studies import config as configs
 from studies import nnode
 from studies.__main__ import main
@@ -95,21 +96,32 @@ def test_ci_rules_are_consistent_and_naive_is_not_under_correlation():
     assert out["naive"]["consistent"] == 0.0
 
 
-def test_network_cross_covariances_match_monte_carlo():
-    """The exact cross-covariance recursion against the sample covariance of the joint
-    errors of two filters over 800 seeded runs (every node detects, so the exact joint
-    covariance is the same in every run)."""
-    dcfg = configs.load("nnode")["dynamic"] | {"steps": 12, "p_center": 1.0, "spread": 0.0}
-    errs = []
-    for seed in range(800):
-        net = nnode.simulate_network(dcfg, 2, np.random.default_rng(seed))
-        errs.append((net["means"][-1] - net["truth"][-1]).ravel())
-    exact = np.concatenate(np.concatenate(net["cross"][-1], axis=1), axis=1)  # (8, 8)
-    sample = np.cov(np.array(errs).T)
-    assert np.linalg.norm(sample - exact) <= 0.15 * np.linalg.norm(exact)
-    # the nodes' errors are strongly correlated through the common prior and process noise
-    corr = exact[0, 4] / np.sqrt(exact[0, 0] * exact[4, 4])
-    assert corr > 0.2
+def test_dynamic_case_fuses_the_kalman_filters_reports_as_fuse_does():
+    """The dynamic case's rows against a direct computation: Kalman filters written out
+    here (not trackers.kalman) and fo.fuse on their estimates at every step."""
+    dcfg = configs.load("nnode")["dynamic"] | {"steps": 15, "burn_in": 5}
+    N, backend = 3, "clarabel"
+    out = nnode.dynamic_scores(dcfg, N, np.random.default_rng(4), backend)
+    sim = nnode.simulate_target(dcfg, N, np.random.default_rng(4))
+    model, (m, P) = nnode.dynamic_model(dcfg), nnode.dynamic_prior(4)
+    m, P = np.tile(m, (N, 1)), np.tile(P, (N, 1, 1))
+    fused = {"BCI trace": [], "MBCI logdet": [], "naive": []}
+    for t, scans in enumerate(sim["scans"]):
+        m, P = m @ model.A.T, model.A @ P @ model.A.T + model.Q
+        for i, y in enumerate(scans):
+            if len(y):
+                K = P[i] @ model.H.T @ np.linalg.inv(model.H @ P[i] @ model.H.T + model.R)
+                m[i] = m[i] + K @ (y[0] - model.H @ m[i])
+                P[i] = (np.eye(4) - K @ model.H) @ P[i]
+        if t >= dcfg["burn_in"]:
+            kw = {"p_detect": sim["p"], "chi": 1 / dcfg["chi_inv_assumed"]}
+            fused["BCI trace"].append(fo.bci(m, P, backend=backend).mean)
+            fused["MBCI logdet"].append(fo.mbci(m, P, criterion="logdet", **kw).mean)
+            fused["naive"].append(fo.fuse(m, P, method="naive").mean)
+    truth = sim["truth"][dcfg["burn_in"]:]
+    for name, means in fused.items():
+        expected = np.mean(np.sum((np.array(means) - truth) ** 2, axis=1))
+        assert out[name]["mse"] == pytest.approx(expected, rel=1e-8), name
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.6, 1.0])
