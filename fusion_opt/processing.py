@@ -56,13 +56,13 @@ class ProcessingNode:
     association ("nearest" | "assignment"), threshold (> 0), dims (state components
     compared; None: all): as in `fo.associate`;
     p_detect: {source: detection probability in [0, 1]} for every source, for "mbci" only;
-    chi in (0, 1] or growth = 1 / chi >= 1 (the paper's chi^-1): at most one, "mbci" only,
-    default chi = 1.0 (MBCI then equals BCI);
+    chi in (0, 1] or growth = 1 / chi >= 1 (the paper's chi^-1), "mbci" only: chi = 1.0 by
+    default (MBCI then equals BCI), growth replaces it when given (with chi left at 1);
     min_sources: groups of fewer sources are dropped (1 passes single estimates on);
     name: stamped on the fused Estimates as `node` and named in errors."""
 
     def __init__(self, sources, *, method="mbci", criterion="trace", backend="newton",
-                 association="nearest", threshold, dims=None, p_detect=None, chi=None,
+                 association="nearest", threshold, dims=None, p_detect=None, chi=1.0,
                  growth=None, min_sources=1, name=None):
         self.name = _check_name(name)
         self.sources = self._check_sources(sources)
@@ -169,7 +169,7 @@ class ProcessingNode:
         return sources
 
     def _check_method(self, method) -> str:
-        if method == "known-cross":
+        if isinstance(method, str) and method == "known-cross":
             raise self._err("method 'known-cross' needs the sources' cross-covariances, "
                             "which a processing node does not have")
         self._check_choice("method", method, FUSE_METHODS)
@@ -179,15 +179,16 @@ class ProcessingNode:
         return method
 
     def _check_choice(self, name: str, value, choices) -> str:
-        if value not in choices:
+        if not isinstance(value, str) or value not in choices:
             raise self._err(f"{name} must be one of {tuple(choices)}, got {value!r}")
         return value
 
     def _check_detection(self, p_detect, chi, growth) -> tuple[dict | None, float | None]:
         """({source: p}, chi) for "mbci"; (None, None) otherwise."""
         if self.method != "mbci":
-            given = [k for k, v in (("p_detect", p_detect), ("chi", chi), ("growth", growth))
-                     if v is not None]
+            given = [name for name, stray in (("p_detect", p_detect is not None),
+                                              ("chi", not (_real(chi) and chi == 1.0)),
+                                              ("growth", growth is not None)) if stray]
             if given:
                 raise self._err(f"{' and '.join(given)} apply to method 'mbci', not "
                                 f"{self.method!r}")
@@ -204,13 +205,12 @@ class ProcessingNode:
             if not _real(p_detect[s]) or not 0.0 <= p_detect[s] <= 1.0:
                 raise self._err(f"p_detect of source {s!r} must be in [0, 1], got "
                                 f"{p_detect[s]!r}")
-        if chi is not None and growth is not None:
-            raise self._err("give chi or growth (= 1 / chi), not both")
         if growth is not None:
+            if not (_real(chi) and chi == 1.0):
+                raise self._err("give chi or growth (= 1 / chi), not both")
             if not _real(growth) or not 1.0 <= growth < np.inf:
                 raise self._err(f"growth must be a finite number >= 1, got {growth!r}")
             chi = 1.0 / growth
-        chi = 1.0 if chi is None else chi
         if not _real(chi) or not 0.0 < chi <= 1.0:
             raise self._err(f"chi must be in (0, 1], got {chi!r}")
         return {s: float(p_detect[s]) for s in self.sources}, float(chi)
