@@ -25,23 +25,6 @@ from .validation import check_detection, finite_array
 _LOG2E = 1.0 / np.log(2.0)
 
 
-def log2_detection_scales(p_detect, chi=None, n_nodes: int | None = None, *,
-                          growth=None) -> np.ndarray:
-    """log2 s (..., N) for p_detect and chi (or growth = 1 / chi), each a scalar, (N,) or
-    (..., N) with leading batch axes; n_nodes fixes N when both are scalars (default 1)."""
-    chi = _chi(chi, growth)
-    if n_nodes is None:
-        shapes = [np.shape(x) for x in (p_detect, chi) if np.ndim(x)]
-        n_nodes = shapes[0][-1] if shapes else 1
-    n_nodes = _node_count(n_nodes)
-    p, c = check_detection(p_detect, chi, n_nodes, "growth" if growth is not None else "chi")
-    with np.errstate(divide="ignore"):  # log(0) = -inf for p = 0 or 1 - p = 0: exact
-        log_p, log_q, log_c = np.log(p), np.log1p(-p), np.log(c)
-        log_t = np.logaddexp(log_p, log_q + log_c)
-        others = log_t.sum(-1, keepdims=True) - log_t  # sum over j != i
-        return np.logaddexp(log_p, log_q + log_c + others) * _LOG2E
-
-
 def detection_scales(p_detect, chi=None, n_nodes: int | None = None, *,
                      growth=None) -> np.ndarray:
     """s (..., N) of the module docstring; refused when a scale underflows float64 (MBCI
@@ -55,14 +38,10 @@ def detection_scales(p_detect, chi=None, n_nodes: int | None = None, *,
 
 
 def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=None):
-    """(q, E), each (..., N), with s = q 2^E exactly, q in [1, 2), E int64."""
-    log2_s = None
-    chi = _chi(chi, growth)
-    if n_nodes is None:
-        shapes = [np.shape(x) for x in (p_detect, chi) if np.ndim(x)]
-        n_nodes = shapes[0][-1] if shapes else 1
-    n_nodes = _node_count(n_nodes)
-    p, c = check_detection(p_detect, chi, n_nodes, "growth" if growth is not None else "chi")
+    """(q, E), each (..., N), with s = q 2^E exactly, q in [1, 2), E int64, for p_detect and
+    chi (or growth = 1 / chi), each a scalar, (N,) or (..., N) with leading batch axes;
+    n_nodes fixes N when both are scalars (default 1)."""
+    p, c = _checked(p_detect, chi, n_nodes, growth)
     t = p + (1.0 - p) * c  # each node's expected factor, > 0 since chi > 0
     # Product over j != i without dividing by t_i: exclusive prefix times exclusive suffix.
     ones = np.ones((*t.shape[:-1], 1))
@@ -73,11 +52,30 @@ def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=No
     q, E = 2.0 * mant, ex.astype(np.int64) - 1
     low = s < 2.0**-1000  # the product may have underflowed: take the split from logs
     if low.any():
-        log2_s = log2_detection_scales(p, c, n_nodes)
+        log2_s = _log2_scales(p, c)
         E_log = np.floor(log2_s).astype(np.int64)
         q = np.where(low, np.exp2(log2_s - E_log), q)
         E = np.where(low, E_log, E)
     return q, E
+
+
+def _checked(p_detect, chi, n_nodes, growth) -> tuple[np.ndarray, np.ndarray]:
+    """(p, chi) checked and broadcast to (..., N)."""
+    chi = _chi(chi, growth)
+    if n_nodes is None:
+        shapes = [np.shape(x) for x in (p_detect, chi) if np.ndim(x)]
+        n_nodes = shapes[0][-1] if shapes else 1
+    n_nodes = _node_count(n_nodes)
+    return check_detection(p_detect, chi, n_nodes, "growth" if growth is not None else "chi")
+
+
+def _log2_scales(p, c) -> np.ndarray:
+    """log2 s (..., N) for checked p and chi (..., N), from logs: no product underflows."""
+    with np.errstate(divide="ignore"):  # log(0) = -inf for p = 0 or 1 - p = 0: exact
+        log_p, log_q, log_c = np.log(p), np.log1p(-p), np.log(c)
+        log_t = np.logaddexp(log_p, log_q + log_c)
+        others = log_t.sum(-1, keepdims=True) - log_t  # sum over j != i
+        return np.logaddexp(log_p, log_q + log_c + others) * _LOG2E
 
 
 def _chi(chi, growth):
