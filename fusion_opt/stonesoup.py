@@ -49,7 +49,8 @@ except ImportError as exc:  # pragma: no cover - depends on the install
     raise ImportError("fusion_opt.stonesoup needs Stone Soup: pip install "
                       "'fusion-opt[stonesoup]'") from exc
 
-from . import BACKENDS, Estimates, FusionInputError, FusionResult, fuse
+from . import BACKENDS, FusionInputError, FusionResult, fuse
+from .estimates import Estimates
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]

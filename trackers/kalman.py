@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion_opt import Estimates, FusionInputError
+from fusion_opt import FusionInputError
+from fusion_opt.estimates import Estimates
 from trackers import _checks
 from trackers.models import LinearGaussian
 

@@ -60,7 +60,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaincc
 
-from fusion_opt import Estimates, FusionInputError
+from fusion_opt import FusionInputError
+from fusion_opt.estimates import Estimates
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments

@@ -39,7 +39,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from fusion_opt import Estimates, FusionInputError
+from fusion_opt import FusionInputError
+from fusion_opt.estimates import Estimates
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.resampling import end_of_step, logsumexp
