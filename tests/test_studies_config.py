@@ -54,6 +54,8 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("backends", 'criteria = ["trace", "det"]\n', "criteria[1] must be one of"),
     ("backends", "instances = 0\n", "instances must be an integer >= 1"),
     ("backends", 'backends = ["gurobi"]\n', "backends[0] must be one of"),
+    ("backends", "batch_check = 0\n", "batch_check must be an integer >= 1"),
+    ("backends", 'backends = ["closed-form"]\nN = [3, 7]\n', "fuses N = 2 only"),
 ]
 
 
