@@ -40,6 +40,7 @@ STUDIES = {
     "table2": "studies.table2",
     "backends": "studies.backends",
     "nnode": "studies.nnode",
+    "network": "studies.network",
 }
 GROUPS = {"paper": ("table1", "table2")}
 STORE, META, REPORT = "runs.sqlite", "meta.json", "report.json"

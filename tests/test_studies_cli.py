@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from studies import table1
-from studies.__main__ import main
+from studies.__main__ import GROUPS, STUDIES, main
 
 # 40 steps, 5 particles and the exact "newton" backend: a run takes about 0.05 s.
 TINY = """
@@ -145,7 +145,7 @@ def test_list_shows_each_whole_description(capsys):
     lines = capsys.readouterr().out.splitlines()
     table2 = next(line for line in lines if line.startswith("table2"))
     assert table2.endswith("3 processing nodes fusing with CI and modified CI.")
-    assert len(lines) == 5
+    assert len(lines) == len(STUDIES) + len(GROUPS)
 
 
 def test_report_of_a_benchmark_rebuilds_from_its_meta_json(tmp_path):

@@ -1,0 +1,209 @@
+"""The network example study: a tiny run through the command line and its report from the
+store, refused configurations, the crossing scenario, the id-switch score on a hand-built
+case, and the throughput benchmark's synthetic groups."""
+
+import copy
+
+import numpy as np
+import pytest
+
+import fusion_opt as fo
+from studies import config as configs
+from studies import network
+from studies.__main__ import main
+
+TINY = """
+runs = 2
+[scenario]
+n_steps = 12
+n_targets = 4
+births = [0.0]
+[tracker]
+n_particles = 4
+[benchmark]
+sources = [2, 3]
+targets_at_sources = 5
+targets = [4, 8]
+sources_at_targets = 2
+warmup = 1
+steps = 2
+"""
+OUTPUTS = ("network.md", "network.csv", "network_throughput.csv", "network_tracks.png",
+           "network_throughput.png", "throughput.json", "meta.json")
+
+
+def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(TINY)
+    assert main(["run", "network", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
+                 "--workers", "1"]) == 0
+    folder = tmp_path / "network"
+    for name in OUTPUTS:
+        assert (folder / name).stat().st_size > 0, name
+    table = (folder / "network.md").read_text()
+    for row in ("| 16 | RBMCDA | monitoring |", "| A | CI | 1 |", "| top | MBCI | 2 |",
+                "| top | naive | 2 |", "| sources | 3 | mbci |", "| targets | 8 | bci |"):
+        assert row in table, row
+    csv = (folder / "network.csv").read_text().splitlines()
+    assert csv[0].startswith("node,rule,level,ospa_mean") and len(csv) == 1 + 16 + 4 * 4
+    (folder / "network.md").unlink()
+    (folder / "network_tracks.png").unlink()
+    assert main(["report", "network", "--out", str(tmp_path)]) == 0
+    assert (folder / "network.md").read_text() == table
+    assert (folder / "network_tracks.png").stat().st_size > 0
+
+
+def test_cli_refuses_a_bad_field_by_name(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[network]\nthreshold = -1.0\n")
+    assert main(["run", "network", "--config", str(cfg), "--out", str(tmp_path)]) == 2
+    assert "network.threshold must be a finite number > 0" in capsys.readouterr().err
+    assert not (tmp_path / "network").exists()
+
+
+def _with(path: tuple, value) -> dict:
+    config = configs.load("network")
+    table = config
+    for key in path[:-1]:
+        table = table[key]
+    table[path[-1]] = value
+    return config
+
+
+@pytest.mark.parametrize("path, value, message", [
+    (("scenario", "p_detect"), [0.9, 1.5], r"scenario.p_detect\[1\] must be"),
+    (("scenario", "clutter_rate"), [0.1, 0.2], "scenario.clutter_rate must give one rate"),
+    (("scenario", "heading_offset"), 2.0, "scenario.heading_offset must be"),
+    (("scenario", "region"), [[1.0, 0.0], [0.0, 1.0]], r"scenario.region\[0\] must be"),
+    (("tracker", "n_particles"), 0, "tracker.n_particles must be an integer >= 1"),
+    (("network", "level1", "A"), [1, 17], r"network.level1.A\[1\] must be an integer"),
+    (("network", "level2", "top"), ["A", "Z"], r"network.level2.top\[1\] must be one of"),
+    (("network", "min_sources", "level2"), 4, "network.min_sources.level2 must be"),
+    (("rules", "CI"), {"method": "ci", "criterion": "trace"}, "rules.CI.method must be"),
+    (("rules", "MBCI"), {"method": "mbci"}, r"\[rules.MBCI\] lacks field\(s\) \['criterion'\]"),
+    (("rules", "naive"), {"method": "naive", "criterion": "trace"},
+     "rules.naive.criterion applies to"),
+    (("fusion", "growth"), 0.9, "fusion.growth must be a finite number >= 1"),
+    (("metrics", "alpha"), 3.0, "metrics.alpha must be"),
+    (("figure", "nodes"), ["A", "Q"], r"figure.nodes\[1\] must be one of"),
+    (("benchmark", "sources"), [1, 4], r"benchmark.sources\[0\] must be an integer >= 2"),
+    (("benchmark", "methods"), ["naive"], r"benchmark.methods\[0\] must be one of"),
+    (("backend",), "closed-form", "backend 'closed-form' fuses two estimates only"),
+    (("seed",), -1, "seed must be an integer >= 0"),
+])
+def test_check_refuses_a_bad_field_naming_it(path, value, message):
+    with pytest.raises(configs.ConfigError, match=message):
+        network.check(_with(path, value))
+
+
+def test_check_refuses_an_unknown_field():
+    config = _with(("tracker", "particles"), 10)
+    with pytest.raises(configs.ConfigError, match=r"\[tracker\] has unknown field\(s\) "
+                                                    r"\['particles'\]"):
+        network.check(config)
+
+
+def test_default_configuration_passes():
+    network.check(configs.load("network"))
+    network.check(configs.load("network", quick=True))
+
+
+def _segments_cross(p, q, r, s) -> bool:
+    """Whether segments pq and rs cross (strictly, by orientation tests)."""
+    def side(a, b, c):
+        return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+    return side(p, q, r) * side(p, q, s) < 0 and side(r, s, p) * side(r, s, q) < 0
+
+
+def _crossings(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+    """Points where the polylines a (m, 2) and b (k, 2) cross (segment midpoints)."""
+    return [(a[i] + a[i + 1] + b[j] + b[j + 1]) / 4
+            for i in range(len(a) - 1) for j in range(len(b) - 1)
+            if _segments_cross(a[i], a[i + 1], b[j], b[j + 1])]
+
+
+def test_scenario_has_twenty_targets_whose_paths_cross_in_the_middle():
+    sc = configs.load("network")["scenario"]
+    data = network.simulate(sc, np.random.default_rng(0))
+    assert data.truth.shape[0] == 20 and data.alive.any(axis=1).all()
+    paths = [data.truth[j, data.alive[j], :2][::4] for j in range(20)]  # every 0.2 s
+    points = {(i, j): _crossings(paths[i], paths[j])
+              for i in range(20) for j in range(i + 1, 20)}
+    crossing = [pair for pair, pts in points.items() if pts]
+    assert len(crossing) >= 150  # of 190 pairs: nearly every pair of paths crosses
+    middle = [np.linalg.norm(p) for pts in points.values() for p in pts]
+    assert np.median(middle) < 0.6 * sc["start_radius"]
+    # and at least 10 pairs meet: closer than the association threshold at one step
+    d = np.linalg.norm(data.truth[:, None, :, :2] - data.truth[None, :, :, :2], axis=-1)
+    meet = (np.nan_to_num(d, nan=np.inf) < 0.3).any(axis=-1)  # (20, 20)
+    assert np.triu(meet, k=1).sum() >= 10
+
+
+def test_scenario_measurements_follow_the_detection_model():
+    sc = copy.deepcopy(configs.load("network")["scenario"])
+    sc["p_detect"], sc["clutter_rate"] = [1.0, 0.5], [0.0, 3.0]
+    data = network.simulate(sc, np.random.default_rng(1))
+    origins = [np.concatenate(o) for o in data.origins]
+    assert np.array_equal(np.sort(origins[0]), np.sort(np.nonzero(data.alive)[0]))
+    n_targets = data.alive.sum()
+    assert abs((origins[1] >= 0).sum() / n_targets - 0.5) < 0.05
+    assert abs((origins[1] < 0).sum() / sc["n_steps"] - 3.0) < 0.3
+
+
+def _estimates(points, ids) -> fo.Estimates:
+    means = np.zeros((len(ids), 4))
+    means[:, :2] = np.reshape(points, (-1, 2))
+    return fo.Estimates(means, np.tile(np.eye(4), (len(ids), 1, 1)), ids)
+
+
+def test_id_switches_on_a_hand_built_case():
+    """Targets 0 (y = 0) and 1 (y = 1) over 6 steps, target 2 alive at steps 0-1 and never
+    estimated; c = 0.5. Matched ids by hand: target 0 gets 1, 1, 2, 2, 2 (unmatched at step
+    5, its estimate 0.6 off): 1 switch; target 1 gets 2, 2, 1, (unmatched at 3), 1, 7:
+    2 switches (the gap at step 3 is no switch); target 2: 0. Mean over 3 targets = 1."""
+    T = 6
+    truth = np.full((3, T, 4), np.nan)
+    truth[0, :, :2] = np.column_stack([np.arange(T), np.zeros(T)])
+    truth[1, :, :2] = np.column_stack([np.arange(T), np.ones(T)])
+    truth[2, :2, :2] = [[10.0, 10.0], [10.0, 10.0]]
+    truth[:, :, 2:] = np.where(np.isnan(truth[:, :, :1]), np.nan, 0.0)
+    alive = ~np.isnan(truth[..., 0])
+    series = [_estimates([[0.1, 0.0], [0.0, 1.1]], [1, 2]),
+              _estimates([[1.0, 1.0], [1.1, 0.0]], [2, 1]),  # listed swapped, same match
+              _estimates([[2.0, 0.1], [2.0, 0.9]], [2, 1]),  # the ids swap
+              _estimates([[3.0, 0.0], [50.0, 50.0]], [2, 9]),  # target 1 missed, a false one
+              _estimates([[4.0, 0.0], [4.0, 1.0]], [2, 1]),
+              _estimates([[5.6, 0.0], [5.0, 1.0]], [3, 7])]  # id 3 beyond c from target 0
+    ids = network.matched_ids(series, truth, alive, 0.5)
+    assert ids == [[1, 1, 2, 2, 2], [2, 2, 1, 1, 7], []]
+    assert network.id_switches(ids, alive) == pytest.approx(1.0)
+
+
+def test_matching_is_the_optimal_assignment_not_greedy():
+    """Targets at x = 0 and 0.45, estimates at 0.2 and -0.3, c = 0.5: greedy nearest pairs
+    0.2 with 0 and leaves -0.3 (0.75 from 0.45) unmatched; the optimal assignment pairs
+    0.2 with 0.45 and -0.3 with 0 (capped cost 0.25 + 0.3 against 0.2 + 0.5)."""
+    means = np.array([[0.2, 0.0], [-0.3, 0.0]])
+    truth = np.array([[0.0, 0.0], [0.45, 0.0]])
+    rows, cols = network.matches(means, truth, 0.5)
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 1), (1, 0)]
+
+
+def test_second_level_mbci_takes_the_detection_of_any_of_its_nodes():
+    config = configs.load("network")
+    net = network.build_network(config, [np.random.default_rng(k) for k in range(16)])
+    p = config["scenario"]["p_detect"]
+    top = net.processing["MBCI top"]
+    expected = 1 - np.prod([1 - p[k - 1] for k in config["network"]["level1"]["B"]])
+    assert top.p_detect["MBCI B"] == pytest.approx(expected)
+    assert net.processing["MBCI A"].p_detect["RBMCDA 4"] == p[3]
+    assert top.chi == pytest.approx(1 / config["fusion"]["growth"])
+    assert net.processing["naive top"].sources == ("naive A", "naive B", "naive C")
+
+
+def test_benchmark_groups_are_the_targets():
+    bm = configs.load("network")["benchmark"] | {"p_detect": [0.9, 0.99], "warmup": 1,
+                                                 "steps": 3}
+    cell = network.time_node(bm, "mbci", 3, 10, np.random.default_rng(0))
+    assert 9 <= cell["tracks_per_step"] <= 10  # one fused track per target, not per report
+    assert 0 < cell["median_ms"] <= cell["p90_ms"]
