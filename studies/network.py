@@ -6,24 +6,13 @@ A runnable example of the library as a user would deploy it: every monitoring no
 `fusion_opt.Network` steps them all. The study only simulates the scenario, configures the
 network and scores what comes out; association, fusion and fused ids are the library's.
 
-Scenario (every number is a field of studies/configs/network.toml; `simulate` draws it):
+Scenario: trackers.scenarios.CrossingConfig (its docstring; every number is a field of
+[scenario] in studies/configs/network.toml), simulated by simulate_crossing: 20 targets
+on a circle heading for its centre, so the paths cross near the middle, born in four
+waves, a third turning gently; each monitoring node detects each alive target with its
+own p_D (Table 2's one-measurement-per-step model would give each of 20 targets a
+detection every 20 steps) and has its own clutter rate.
 
-- J targets start on the circle of radius r0 at the angles 2 pi j / J and move at constant
-  speed towards the centre, their heading turned by +heading_offset or -heading_offset
-  (alternating), so every straight path passes within r0 sin(heading_offset) of the
-  centre and the paths cross near the middle. Birth times and turn rates are given as
-  lists that are cycled over the targets (a turning target follows the coordinated-turn
-  model with that rate, so it bends gently). A target lives 2 r0 / speed seconds from
-  its birth (the time to cross the circle) or until the run ends. The truth is
-  deterministic (no process noise): the runs differ in detections, noise, clutter and
-  the particle filters. Time convention as in trackers.scenarios: step k at
-  t_k = (k + 1) dt, a target alive at the steps with birth < t_k <= death, x0 its state
-  at birth, propagated exactly with the turn model.
-- Monitoring node i detects each alive target independently with probability p_D[i]
-  (the usual multi-target model; Table 2's one-measurement-per-step model would give each
-  of 20 targets a detection every 20 steps), measures its position with noise
-  N(0, meas_sd^2 I2), and adds Poisson(clutter_rate[i]) clutter points uniform on the
-  region; a step's measurements come in random order.
 - Each monitoring node runs RBMCDA with the constant-velocity model (q as the truth's),
   the new-target prior N(0, diag(prior_pos_var, prior_pos_var, prior_vel_var,
   prior_vel_var)) and the settings of [tracker].
@@ -85,18 +74,15 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-from scipy.optimize import linear_sum_assignment
 
 import fusion_opt as fo
 from trackers import metrics, rbmcda
-from trackers.models import discretize, turn_F, turn_L, turn_model
-from trackers.scenarios import CLUTTER
+from trackers.scenarios import CrossingConfig, MultiTargetData, simulate_crossing
 
 from . import config as configs
 from . import stats
@@ -130,24 +116,6 @@ def _numbers(where, x, rule=configs.number):
     return [rule(f"{where}[{i}]", v) for i, v in enumerate(configs.items(where, x))]
 
 
-def _region(where, x):
-    for i, side in enumerate(configs.items(where, x, length=2)):
-        low, high = (configs.number(f"{where}[{i}][{k}]", v)
-                     for k, v in enumerate(configs.items(f"{where}[{i}]", side, length=2)))
-        if high <= low:
-            raise configs.ConfigError(f"{where}[{i}] must be [low, high] with low < high, "
-                                      f"got {side!r}")
-
-
-SCENARIO = {
-    "dt": _positive, "n_steps": _count, "q": _positive, "meas_sd": _positive,
-    "region": _region, "n_targets": _count, "start_radius": _positive, "speed": _positive,
-    "heading_offset": lambda w, x: configs.number(w, x, low=0, high=float(np.pi / 2)),
-    "births": lambda w, x: _numbers(w, x, lambda ww, v: configs.number(ww, v, low=0)),
-    "turn_rates": _numbers,
-    "p_detect": lambda w, x: _numbers(w, x, _probability),
-    "clutter_rate": lambda w, x: _numbers(w, x, lambda ww, v: configs.number(ww, v, low=0)),
-}
 TRACKER = {
     "n_particles": _count, "birth_prob": _probability, "clutter_prior": _probability,
     "lifetime_shape": _positive, "lifetime_scale": _positive, "clutter_density": _positive,
@@ -179,16 +147,12 @@ def check(config: dict) -> None:
     configs.fields(config, "", ("runs", "seed", "backend", "scenario", "tracker", "network",
                                 "rules", "fusion", "metrics", "figure", "benchmark"))
     configs.run_fields(config)
-    sc = _check_table(config["scenario"], "scenario", SCENARIO)
-    if len(sc["clutter_rate"]) != len(sc["p_detect"]):
-        raise configs.ConfigError(f"scenario.clutter_rate must give one rate per monitoring "
-                                  f"node ({len(sc['p_detect'])}, as scenario.p_detect), got "
-                                  f"{len(sc['clutter_rate'])}")
+    sc = scenario(config)
     tr = _check_table(config["tracker"], "tracker", TRACKER)
     if tr["birth_prob"] == 0 and tr["clutter_prior"] == 0:
         raise configs.ConfigError("tracker.birth_prob and tracker.clutter_prior must not "
                                   "both be 0: nothing could explain a measurement")
-    width = _check_network(config["network"], len(sc["p_detect"]))
+    width = _check_network(config["network"], len(sc.p_detect))
     configs.backend("backend", config["backend"], nodes=width)
     _check_rules(config["rules"])
     fusion = configs.fields(config["fusion"], "fusion", ("growth",))
@@ -267,77 +231,9 @@ def _check_figure(config) -> None:
 
 # --------------------------------------------------------------------------- scenario
 
-@dataclass(frozen=True)
-class CrossingData:
-    """One simulated run of the crossing scenario (module docstring).
-
-    times (T,): t_k = (k + 1) dt; truth (J, T, 4): target states, NaN where not alive;
-    alive (J, T) bool; scans: per monitoring node, a tuple of T arrays (k_t, 2), the
-    step's measurements in random order; origins: likewise (k_t,) int, the target index
-    of each measurement or CLUTTER."""
-
-    times: np.ndarray
-    truth: np.ndarray
-    alive: np.ndarray
-    scans: tuple
-    origins: tuple
-
-
-def targets(sc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The targets of scenario table sc: x0 (J, 4) at birth, births (J,), deaths (J,) in
-    s, turn rates (J,) in rad/s."""
-    j = np.arange(sc["n_targets"])
-    angle = 2 * np.pi * j / sc["n_targets"]
-    heading = angle + np.pi + sc["heading_offset"] * (-1.0) ** j  # inwards, turned
-    x0 = np.column_stack([sc["start_radius"] * np.cos(angle),
-                          sc["start_radius"] * np.sin(angle),
-                          sc["speed"] * np.cos(heading), sc["speed"] * np.sin(heading)])
-    births = np.resize(np.asarray(sc["births"], dtype=float), j.size)
-    rates = np.resize(np.asarray(sc["turn_rates"], dtype=float), j.size)
-    return x0, births, births + 2 * sc["start_radius"] / sc["speed"], rates
-
-
-def true_states(sc: dict) -> tuple[np.ndarray, np.ndarray]:
-    """truth (J, T, 4), NaN where not alive, and alive (J, T): each target propagated
-    exactly by its turn model from its birth (module docstring)."""
-    x0, births, deaths, rates = targets(sc)
-    dt, T = sc["dt"], sc["n_steps"]
-    truth = np.full((len(x0), T, 4), np.nan)
-    for j in range(len(x0)):
-        b, e = round(births[j] / dt), round(deaths[j] / dt)
-        A = discretize(turn_F(rates[j]), turn_L(), sc["q"] * np.eye(2), dt)[0]
-        x = x0[j]
-        for k in range(b, min(e, T)):  # b < t_k / dt = k + 1 <= e
-            x = A @ x
-            truth[j, k] = x
-    return truth, ~np.isnan(truth[..., 0])
-
-
-def measure(truth: np.ndarray, alive: np.ndarray, p_d: float, clutter_rate: float,
-            sc: dict, rng: np.random.Generator) -> tuple[tuple, tuple]:
-    """One monitoring node's scans (T arrays (k_t, 2)) and origins (T arrays (k_t,))."""
-    (x_lo, x_hi), (y_lo, y_hi) = sc["region"]
-    scans, origins = [], []
-    for k in range(truth.shape[1]):
-        seen = np.flatnonzero(alive[:, k] & (rng.random(len(truth)) < p_d))
-        y = truth[seen, k, :2] + sc["meas_sd"] * rng.standard_normal((seen.size, 2))
-        n_c = rng.poisson(clutter_rate)
-        clutter = np.column_stack([rng.uniform(x_lo, x_hi, n_c), rng.uniform(y_lo, y_hi, n_c)])
-        order = rng.permutation(seen.size + n_c)
-        scans.append(np.concatenate([y, clutter])[order])
-        origins.append(np.concatenate([seen, np.full(n_c, CLUTTER)])[order])
-    return tuple(scans), tuple(origins)
-
-
-def simulate(sc: dict, rng: np.random.Generator) -> CrossingData:
-    """One run of the scenario of table sc; each node draws from its own child of rng."""
-    truth, alive = true_states(sc)
-    node_rngs = rng.spawn(len(sc["p_detect"]))
-    per_node = [measure(truth, alive, p, c, sc, r)
-                for p, c, r in zip(sc["p_detect"], sc["clutter_rate"], node_rngs, strict=True)]
-    times = sc["dt"] * np.arange(1, sc["n_steps"] + 1)
-    return CrossingData(times, truth, alive, tuple(s for s, _ in per_node),
-                        tuple(o for _, o in per_node))
+def scenario(config: dict) -> CrossingConfig:
+    """The [scenario] table as trackers.scenarios.CrossingConfig (checked by it)."""
+    return configs.build(CrossingConfig, config["scenario"], "scenario")
 
 
 # ---------------------------------------------------------------------------- network
@@ -349,11 +245,11 @@ def monitor_name(k: int) -> str:
 def build_network(config: dict, rngs) -> fo.Network:
     """RBMCDA trackers "RBMCDA k" (k = 1..len(rngs), each with its generator) and, per
     rule R of [rules], the processing nodes "R NAME" of both levels."""
-    sc, tr = config["scenario"], config["tracker"]
-    model = turn_model(0.0, sc["q"], sc["meas_sd"] ** 2, sc["dt"])
+    sc, tr = scenario(config), config["tracker"]
+    model = sc.filter_model()
     P0 = np.diag([tr["prior_pos_var"]] * 2 + [tr["prior_vel_var"]] * 2)
     settings = {k: v for k, v in tr.items() if k not in ("prior_pos_var", "prior_vel_var")}
-    trackers = {monitor_name(k): rbmcda.RBMCDA(model, np.zeros(4), P0, rng=rng, dt=sc["dt"],
+    trackers = {monitor_name(k): rbmcda.RBMCDA(model, np.zeros(4), P0, rng=rng, dt=sc.dt,
                                                name=monitor_name(k), **settings)
                 for k, rng in enumerate(rngs, start=1)}
     processing = {}
@@ -394,29 +290,17 @@ def _rule_args(config: dict, spec: dict, p_detect: dict) -> dict:
 
 
 def run_network(config: dict, seed: np.random.SeedSequence):
-    """One run: (CrossingData, {node name: list over steps of Estimates})."""
-    sc = config["scenario"]
-    sim_seed, *node_seeds = seed.spawn(1 + len(sc["p_detect"]))
-    data = simulate(sc, np.random.default_rng(sim_seed))
+    """One run: (MultiTargetData, {node name: list over steps of Estimates})."""
+    sc = scenario(config)
+    sim_seed, *node_seeds = seed.spawn(1 + len(sc.p_detect))
+    data = simulate_crossing(sc, np.random.default_rng(sim_seed))
     net = build_network(config, [np.random.default_rng(s) for s in node_seeds])
-    scans = [{monitor_name(k): node[t] for k, node in enumerate(data.scans, start=1)}
-             for t in range(sc["n_steps"])]
+    scans = [{monitor_name(k): node.scans[t] for k, node in enumerate(data.nodes, start=1)}
+             for t in range(sc.n_steps)]
     return data, net.run(scans, times=data.times.tolist())
 
 
 # ---------------------------------------------------------------------------- scoring
-
-def matches(means: np.ndarray, truth: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal assignment of estimates means (m, >= 2) to targets truth (J, >= 2) on
-    position with cost min(d, c); the pairs with d < c as (estimate rows (K,), target
-    rows (K,))."""
-    if len(means) == 0 or len(truth) == 0:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    D = np.linalg.norm(means[:, None, :2] - truth[None, :, :2], axis=-1)
-    r, s = linear_sum_assignment(np.minimum(D, c))
-    keep = D[r, s] < c
-    return r[keep], s[keep]
-
 
 def matched_ids(series, truth: np.ndarray, alive: np.ndarray, c: float) -> list[list[int]]:
     """For each target j (of truth (J, T, >= 2), alive (J, T)), the ids of the estimates
@@ -424,21 +308,21 @@ def matched_ids(series, truth: np.ndarray, alive: np.ndarray, c: float) -> list[
     ids: list[list[int]] = [[] for _ in range(len(truth))]
     for t, est in enumerate(series):
         on = np.flatnonzero(alive[:, t])
-        rows, cols = matches(est.means, truth[on, t], c)
+        rows, cols = metrics.match(est.means[:, POSITION], truth[on, t][:, POSITION], c)
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
             ids[on[j]].append(int(est.ids[i]))
     return ids
 
 
 def id_switches(ids: list[list[int]], alive: np.ndarray) -> float:
-    """Mean over the targets alive at some step (alive (J, T)) of the number of changes
-    between consecutive entries of their matched ids (module docstring)."""
+    """Mean over the targets alive at some step (alive (J, T)) of trackers.metrics'
+    id_switches of their matched ids (module docstring)."""
     present = np.flatnonzero(alive.any(axis=1))
-    return float(np.mean([np.count_nonzero(np.diff(ids[j])) if ids[j] else 0
-                          for j in present])) if present.size else 0.0
+    switches = metrics.id_switches([ids[j] for j in present])
+    return float(switches.mean()) if present.size else 0.0
 
 
-def scores(config: dict, data: CrossingData, series) -> dict:
+def scores(config: dict, data: MultiTargetData, series) -> dict:
     """OSPA, GOSPA, cardinality error, id switches per target and ANEES of one node's
     Estimates series (one per step) against the truth (module docstring)."""
     m = config["metrics"]
@@ -449,7 +333,7 @@ def scores(config: dict, data: CrossingData, series) -> dict:
         gospa.append(metrics.gospa(e.means[:, POSITION], X[:, POSITION], m["cutoff"],
                                    m["order"], m["alpha"]))
         card.append(abs(len(e) - len(X)))
-        rows, cols = matches(e.means, X, m["cutoff"])
+        rows, cols = metrics.match(e.means[:, POSITION], X[:, POSITION], m["cutoff"])
         est.append(e.means[rows])
         true.append(X[cols])
         covs.append(e.covs[rows])
@@ -468,7 +352,7 @@ def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dic
     return result, figure_data(config, data, series) if index == FIGURE_RUN else None
 
 
-def figure_data(config: dict, data: CrossingData, series) -> dict:
+def figure_data(config: dict, data: MultiTargetData, series) -> dict:
     """What the figures draw of one run: the true paths (J lists of (x, y)), the number of
     targets per step, and for each node of [figure] its estimates as rows (step, id, x, y),
     its number of estimates per step and its id switches in total (summed over targets)."""

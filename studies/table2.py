@@ -26,7 +26,6 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 import fusion_opt as fo
 from trackers import metrics, rbmcda
@@ -159,7 +158,8 @@ def _scores(config, data, series) -> dict:
         ospa.append(metrics.ospa(means[:, POSITION], truth[:, POSITION], c, p))
         gospa.append(metrics.gospa(means[:, POSITION], truth[:, POSITION], c, p))
         card.append(abs(len(means) - len(alive)))
-        for i, j in _matches(means, truth, c):
+        for i, j in zip(*metrics.match(means[:, POSITION], truth[:, POSITION], c),
+                        strict=True):
             err = means[i] - truth[j]
             for key, e, P in (("mse", err, covs[i]),
                               ("mse_pos", err[POSITION], covs[i][:2, :2])):
@@ -169,15 +169,6 @@ def _scores(config, data, series) -> dict:
     scores = {key: float(sum(np.mean(v) for v in d.values())) for key, d in per_target.items()}
     return scores | {"ospa": float(np.mean(ospa)), "gospa": float(np.mean(gospa)),
                      "card_err": float(np.mean(card))}
-
-
-def _matches(means, truth, c):
-    """Optimal assignment of estimates to targets on position, pairs closer than c."""
-    if len(means) == 0 or len(truth) == 0:
-        return []
-    D = np.linalg.norm(means[:, None, :2] - truth[None, :, :2], axis=-1)
-    r, s = linear_sum_assignment(np.minimum(D, c))
-    return [(i, j) for i, j in zip(r, s, strict=True) if D[i, j] < c]
 
 
 # ------------------------------------------------------------------------------ report

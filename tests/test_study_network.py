@@ -1,8 +1,7 @@
 """The network example study: a tiny run through the command line and its report from the
-store, refused configurations, the crossing scenario, the id-switch score on a hand-built
-case, and the throughput benchmark's synthetic groups."""
-
-import copy
+store, refused configurations, the id-switch score on a hand-built case, and the
+throughput benchmark's synthetic groups (the scenario's own tests are in
+test_trackers_scenarios.py)."""
 
 import numpy as np
 import pytest
@@ -71,10 +70,11 @@ def _with(path: tuple, value) -> dict:
 
 
 @pytest.mark.parametrize("path, value, message", [
-    (("scenario", "p_detect"), [0.9, 1.5], r"scenario.p_detect\[1\] must be"),
-    (("scenario", "clutter_rate"), [0.1, 0.2], "scenario.clutter_rate must give one rate"),
-    (("scenario", "heading_offset"), 2.0, "scenario.heading_offset must be"),
-    (("scenario", "region"), [[1.0, 0.0], [0.0, 1.0]], r"scenario.region\[0\] must be"),
+    (("scenario", "p_detect"), [0.9, 1.5], r"\[scenario\] p_detect\[1\] must be .* got 1.5$"),
+    (("scenario", "clutter_rate"), [0.1, 0.2], r"\[scenario\] clutter_rate must give one rate"),
+    (("scenario", "heading_offset"), 2.0, r"\[scenario\] heading_offset must be"),
+    (("scenario", "region"), [[1.0, 0.0], [0.0, 1.0]], r"\[scenario\] region must be"),
+    (("scenario", "speeed"), 1.0, r"\[scenario\] has unknown field\(s\) \['speeed'\]"),
     (("tracker", "n_particles"), 0, "tracker.n_particles must be an integer >= 1"),
     (("network", "level1", "A"), [1, 17], r"network.level1.A\[1\] must be an integer"),
     (("network", "level2", "top"), ["A", "Z"], r"network.level2.top\[1\] must be one of"),
@@ -108,48 +108,6 @@ def test_default_configuration_passes():
     network.check(configs.load("network", quick=True))
 
 
-def _segments_cross(p, q, r, s) -> bool:
-    """Whether segments pq and rs cross (strictly, by orientation tests)."""
-    def side(a, b, c):
-        return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
-    return side(p, q, r) * side(p, q, s) < 0 and side(r, s, p) * side(r, s, q) < 0
-
-
-def _crossings(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
-    """Points where the polylines a (m, 2) and b (k, 2) cross (segment midpoints)."""
-    return [(a[i] + a[i + 1] + b[j] + b[j + 1]) / 4
-            for i in range(len(a) - 1) for j in range(len(b) - 1)
-            if _segments_cross(a[i], a[i + 1], b[j], b[j + 1])]
-
-
-def test_scenario_has_twenty_targets_whose_paths_cross_in_the_middle():
-    sc = configs.load("network")["scenario"]
-    data = network.simulate(sc, np.random.default_rng(0))
-    assert data.truth.shape[0] == 20 and data.alive.any(axis=1).all()
-    paths = [data.truth[j, data.alive[j], :2][::4] for j in range(20)]  # every 0.2 s
-    points = {(i, j): _crossings(paths[i], paths[j])
-              for i in range(20) for j in range(i + 1, 20)}
-    crossing = [pair for pair, pts in points.items() if pts]
-    assert len(crossing) >= 150  # of 190 pairs: nearly every pair of paths crosses
-    middle = [np.linalg.norm(p) for pts in points.values() for p in pts]
-    assert np.median(middle) < 0.6 * sc["start_radius"]
-    # and at least 10 pairs meet: closer than the association threshold at one step
-    d = np.linalg.norm(data.truth[:, None, :, :2] - data.truth[None, :, :, :2], axis=-1)
-    meet = (np.nan_to_num(d, nan=np.inf) < 0.3).any(axis=-1)  # (20, 20)
-    assert np.triu(meet, k=1).sum() >= 10
-
-
-def test_scenario_measurements_follow_the_detection_model():
-    sc = copy.deepcopy(configs.load("network")["scenario"])
-    sc["p_detect"], sc["clutter_rate"] = [1.0, 0.5], [0.0, 3.0]
-    data = network.simulate(sc, np.random.default_rng(1))
-    origins = [np.concatenate(o) for o in data.origins]
-    assert np.array_equal(np.sort(origins[0]), np.sort(np.nonzero(data.alive)[0]))
-    n_targets = data.alive.sum()
-    assert abs((origins[1] >= 0).sum() / n_targets - 0.5) < 0.05
-    assert abs((origins[1] < 0).sum() / sc["n_steps"] - 3.0) < 0.3
-
-
 def _estimates(points, ids) -> fo.Estimates:
     means = np.zeros((len(ids), 4))
     means[:, :2] = np.reshape(points, (-1, 2))
@@ -177,16 +135,6 @@ def test_id_switches_on_a_hand_built_case():
     ids = network.matched_ids(series, truth, alive, 0.5)
     assert ids == [[1, 1, 2, 2, 2], [2, 2, 1, 1, 7], []]
     assert network.id_switches(ids, alive) == pytest.approx(1.0)
-
-
-def test_matching_is_the_optimal_assignment_not_greedy():
-    """Targets at x = 0 and 0.45, estimates at 0.2 and -0.3, c = 0.5: greedy nearest pairs
-    0.2 with 0 and leaves -0.3 (0.75 from 0.45) unmatched; the optimal assignment pairs
-    0.2 with 0.45 and -0.3 with 0 (capped cost 0.25 + 0.3 against 0.2 + 0.5)."""
-    means = np.array([[0.2, 0.0], [-0.3, 0.0]])
-    truth = np.array([[0.0, 0.0], [0.45, 0.0]])
-    rows, cols = network.matches(means, truth, 0.5)
-    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 1), (1, 0)]
 
 
 def test_second_level_mbci_takes_the_detection_of_any_of_its_nodes():

@@ -134,3 +134,18 @@ def test_metrics_refuse_complex_booleans_and_fractional_components():
         metrics.ospa(np.array([[1 + 1j, 0.0]]), E, 1.0, 2)
     with pytest.raises(ValueError, match="estimates must be an array of real numbers"):
         metrics.mse([[True, 0.0]], [[0.0, 0.0]])
+
+
+def test_matching_is_the_optimal_assignment_not_greedy():
+    """Targets at x = 0 and 0.45, estimates at 0.2 and -0.3, c = 0.5: greedy nearest pairs
+    0.2 with 0 and leaves -0.3 (0.75 from 0.45) unmatched; the optimal assignment pairs
+    0.2 with 0.45 and -0.3 with 0 (capped cost 0.25 + 0.3 against 0.2 + 0.5)."""
+    means = np.array([[0.2, 0.0], [-0.3, 0.0]])
+    truth = np.array([[0.0, 0.0], [0.45, 0.0]])
+    rows, cols = metrics.match(means, truth, 0.5)
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 1), (1, 0)]
+
+
+def test_id_switches_count_changes_of_the_matched_id():
+    """Target 0 keeps id 7 through a gap, target 1 goes 3 -> 4 -> 3, target 2 never matched."""
+    np.testing.assert_array_equal(metrics.id_switches([[7, 7, 7], [3, 4, 3], []]), [0, 2, 0])

@@ -1,4 +1,5 @@
-"""Scenario simulators: DESIGN §3 defaults, truth kinematics, detection and clutter rates."""
+"""Scenario simulators: DESIGN §3 defaults, truth kinematics, detection and clutter rates;
+the crossing targets of the network example."""
 
 import dataclasses
 
@@ -176,3 +177,55 @@ def test_configs_refuse_no_nodes_and_non_boolean_flags():
             cls(n_particles=True)
     with pytest.raises(FusionInputError, match="targets must be a sequence"):
         scenarios.Table2Config(targets=None)
+
+
+def _segments_cross(p, q, r, s) -> bool:
+    """Whether segments pq and rs cross (strictly, by orientation tests)."""
+    def side(a, b, c):
+        return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+    return side(p, q, r) * side(p, q, s) < 0 and side(r, s, p) * side(r, s, q) < 0
+
+
+def _crossings(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+    """Points where the polylines a (m, 2) and b (k, 2) cross (segment midpoints)."""
+    return [(a[i] + a[i + 1] + b[j] + b[j + 1]) / 4
+            for i in range(len(a) - 1) for j in range(len(b) - 1)
+            if _segments_cross(a[i], a[i + 1], b[j], b[j + 1])]
+
+
+def test_scenario_has_twenty_targets_whose_paths_cross_in_the_middle():
+    sc = scenarios.CrossingConfig()
+    data = scenarios.simulate_crossing(sc, np.random.default_rng(0))
+    assert data.truth.shape[0] == 20 and data.alive.any(axis=1).all()
+    paths = [data.truth[j, data.alive[j], :2][::4] for j in range(20)]  # every 0.2 s
+    points = {(i, j): _crossings(paths[i], paths[j])
+              for i in range(20) for j in range(i + 1, 20)}
+    crossing = [pair for pair, pts in points.items() if pts]
+    assert len(crossing) >= 150  # of 190 pairs: nearly every pair of paths crosses
+    middle = [np.linalg.norm(p) for pts in points.values() for p in pts]
+    assert np.median(middle) < 0.6 * sc.start_radius
+    # and at least 10 pairs meet: closer than the association threshold at one step
+    d = np.linalg.norm(data.truth[:, None, :, :2] - data.truth[None, :, :, :2], axis=-1)
+    meet = (np.nan_to_num(d, nan=np.inf) < 0.3).any(axis=-1)  # (20, 20)
+    assert np.triu(meet, k=1).sum() >= 10
+
+
+def test_scenario_measurements_follow_the_detection_model():
+    sc = scenarios.CrossingConfig(p_detect=(1.0, 0.5), clutter_rate=(0.0, 3.0))
+    data = scenarios.simulate_crossing(sc, np.random.default_rng(1))
+    origins = [node.origin for node in data.nodes]
+    assert np.array_equal(np.sort(origins[0]), np.sort(np.nonzero(data.alive)[0]))
+    n_targets = data.alive.sum()
+    assert abs((origins[1] >= 0).sum() / n_targets - 0.5) < 0.05
+    assert abs((origins[1] < 0).sum() / sc.n_steps - 3.0) < 0.3
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("clutter_rate", (1.0,), "one rate per node"), ("heading_offset", 2.0, "heading_offset"),
+    ("births", (), "births must not be empty"), ("p_detect", (0.5, 1.5) + (0.5,) * 14,
+                                                  r"p_detect\[1\]"),
+    ("n_targets", 0, "n_targets"),
+])
+def test_crossing_config_refuses_bad_fields_by_name(field, value, match):
+    with pytest.raises(FusionInputError, match=match):
+        scenarios.CrossingConfig(**{field: value})

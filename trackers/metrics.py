@@ -19,6 +19,9 @@ Multi-target, for point sets X (m, d) and Y (k, d), with d_c(x, y) = min(c, ||x 
         ( min_pi sum_{i<=m} d_c(x_i, y_pi(i))^p + (c^p / alpha) (k - m) )^(1/p)
     (with alpha = 2 this is the assignment distance with a cost c^p / 2 per missed or false
     target). The optimal assignment uses scipy.optimize.linear_sum_assignment.
+
+Track identity: `match` pairs estimates with targets (the OSPA assignment, pairs closer
+than c) and `id_switches` counts, per target, how often the id matched to it changes.
 """
 
 from __future__ import annotations
@@ -170,6 +173,29 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
     m, k = sorted((X.shape[0], Y.shape[0]))
     total = _assignment_cost(X, Y, c, p) + c**p / alpha * (k - m)
     return float(total ** (1.0 / p))
+
+
+def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of the optimal assignment of estimates X (m, d) to targets Y (k, d) with
+    cost d_c = min(c, ||x - y||) (the assignment of OSPA) that are closer than c:
+    (rows of X (K,), rows of Y (K,)), K <= min(m, k)."""
+    X, Y = _point_sets(X, Y)
+    c = _checks.positive("c", c)
+    if X.shape[0] == 0 or Y.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
+    r, s = linear_sum_assignment(np.minimum(D, c))
+    keep = D[r, s] < c
+    return r[keep], s[keep]
+
+
+def id_switches(ids) -> np.ndarray:
+    """(J,) the number of changes between consecutive entries of each target's sequence of
+    matched track ids, ids[j] the ids matched to target j in step order (steps where it
+    is unmatched left out, so a track that drops out and returns with its id does not
+    switch)."""
+    return np.array([np.count_nonzero(np.diff(np.asarray(s, dtype=np.int64))) for s in ids],
+                    dtype=np.int64)
 
 
 def cardinality_error(n_estimated, n_true) -> np.ndarray:

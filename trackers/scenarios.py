@@ -1,5 +1,6 @@
-"""Simulators for the paper's two scenarios (DESIGN §3), with every parameter in a frozen
-configuration dataclass whose defaults are the DESIGN values.
+"""Simulators for the paper's two scenarios (DESIGN §3) and for the crossing targets of the
+network example, with every parameter in a frozen configuration dataclass whose defaults
+are the DESIGN values (the example's: studies/configs/network.toml).
 
 Time convention (both scenarios): step k = 0..T-1 is at time t_k = (k + 1) dt. A target's
 initial state x0 is its state at its birth time (0 for the Table 1 target); its truth is
@@ -333,12 +334,12 @@ class Table2Config:
 
 
 @dataclass(frozen=True)
-class Table2Data:
-    """One simulated run of Table 2.
+class MultiTargetData:
+    """One simulated run of a multi-target scenario (Table 2, crossing targets).
 
     times (T,); truth (n_targets, T, 4) states, NaN where the target is not alive;
     alive (n_targets, T) bool; nodes: one NodeData per monitoring node (origins are the
-    target's index in ``config.targets`` or CLUTTER).
+    target's index or CLUTTER).
     """
 
     times: np.ndarray
@@ -356,7 +357,7 @@ class Table2Data:
         return self.alive.sum(axis=0)
 
 
-def simulate_table2(config: Table2Config, rng: np.random.Generator) -> Table2Data:
+def simulate_table2(config: Table2Config, rng: np.random.Generator) -> MultiTargetData:
     """Simulate the truth and every node's measurements for one run of Table 2.
 
     Each node, each step: with probability p_D one measurement of one alive target chosen
@@ -407,4 +408,125 @@ def simulate_table2(config: Table2Config, rng: np.random.Generator) -> Table2Dat
         # random order within a step: sort by step, ties broken by a random key
         order = np.lexsort((nrng.random(steps_arr.size), steps_arr))
         nodes.append(_node_data(vals_arr[order], steps_arr[order], origins_arr[order], times))
-    return Table2Data(times, truth, alive, tuple(nodes))
+    return MultiTargetData(times, truth, alive, tuple(nodes))
+
+
+# ------------------------------------------------------------------- crossing targets
+
+
+@dataclass(frozen=True)
+class CrossingConfig:
+    """Targets that cross, seen by many monitoring nodes (the network example).
+
+    n_targets targets start on the circle of radius start_radius at the angles
+    2 pi j / n_targets and move at `speed` towards the centre, their heading turned by
+    +heading_offset or -heading_offset (alternating), so every straight path passes within
+    start_radius sin(heading_offset) of the centre. Birth times (s) and turn rates (rad/s)
+    are cycled over the targets; a target lives 2 start_radius / speed seconds from its
+    birth (the time to cross the circle) or until the run ends, and moves with the
+    coordinated-turn model of its rate, with no process noise. Node i detects each alive
+    target independently with probability p_detect[i] (the usual multi-target model),
+    measures its position with noise N(0, meas_sd^2 I2), and adds Poisson(clutter_rate[i])
+    clutter points uniform on the region; a step's measurements come in random order.
+    q is the spectral density of the filters' constant-velocity model."""
+
+    dt: float = 0.05
+    n_steps: int = 110
+    q: float = 0.1
+    meas_sd: float = 0.05
+    region: tuple[tuple[float, float], tuple[float, float]] = ((-2.5, 2.5), (-2.5, 2.5))
+    n_targets: int = 20
+    start_radius: float = 2.0
+    speed: float = 1.0
+    heading_offset: float = 0.15
+    births: tuple[float, ...] = (0.0, 0.5, 1.0, 1.5)
+    turn_rates: tuple[float, ...] = (0.0, 0.0, 0.0, 0.2, 0.0, -0.2)
+    p_detect: tuple[float, ...] = (0.95, 0.7, 0.85, 0.6, 0.9, 0.75, 0.98, 0.65, 0.8, 0.9,
+                                   0.7, 0.85, 0.6, 0.95, 0.75, 0.8)
+    clutter_rate: tuple[float, ...] = (0.2, 1.0, 0.5, 2.0, 0.1, 1.5, 0.3, 2.5, 0.5, 1.0, 0.2,
+                                       3.0, 0.8, 0.4, 1.2, 0.6)
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "q", "meas_sd", "start_radius", "speed"):
+            _checks.positive(name, getattr(self, name))
+        for name in ("n_steps", "n_targets"):
+            _checks.positive_int(name, getattr(self, name))
+        _check_region("region", self.region)
+        h = _checks.finite("heading_offset", self.heading_offset)
+        if not 0.0 <= h <= _PI / 2:
+            raise FusionInputError(f"heading_offset must be in [0, pi/2], got {h}")
+        for name, check in (("births", _checks.nonnegative), ("turn_rates", _checks.finite),
+                            ("p_detect", _checks.probability),
+                            ("clutter_rate", _checks.nonnegative)):
+            values = _checks.finite_array(name, getattr(self, name), ndim=1)
+            if values.size == 0:
+                raise FusionInputError(f"{name} must not be empty")
+            for i, v in enumerate(values.tolist()):
+                check(f"{name}[{i}]", v)
+        if len(self.clutter_rate) != len(self.p_detect):
+            raise FusionInputError(f"clutter_rate must give one rate per node "
+                                   f"({len(self.p_detect)}, as p_detect), got "
+                                   f"{len(self.clutter_rate)}")
+
+    def filter_model(self) -> LinearGaussian:
+        """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
+        return turn_model(0.0, self.q, self.meas_sd**2, self.dt)
+
+    def times(self) -> np.ndarray:
+        return self.dt * np.arange(1, self.n_steps + 1)
+
+    def targets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """x0 (J, 4) at birth, births (J,), deaths (J,) in s, turn rates (J,) in rad/s."""
+        j = np.arange(self.n_targets)
+        angle = 2 * np.pi * j / self.n_targets
+        heading = angle + np.pi + self.heading_offset * (-1.0) ** j  # inwards, turned
+        x0 = np.column_stack([self.start_radius * np.cos(angle),
+                              self.start_radius * np.sin(angle),
+                              self.speed * np.cos(heading), self.speed * np.sin(heading)])
+        births = np.resize(np.asarray(self.births, dtype=float), j.size)
+        rates = np.resize(np.asarray(self.turn_rates, dtype=float), j.size)
+        return x0, births, births + 2 * self.start_radius / self.speed, rates
+
+
+def simulate_crossing(config: CrossingConfig, rng: np.random.Generator) -> MultiTargetData:
+    """Simulate the truth and every node's measurements for one run of the crossing
+    scenario (CrossingConfig); node i draws from the i-th child generator of ``rng``."""
+    if not isinstance(config, CrossingConfig):
+        raise FusionInputError(f"config must be a CrossingConfig, got {type(config).__name__}")
+    rng = _checks.generator("rng", rng)
+    truth, alive = _crossing_truth(config)
+    times = config.times()
+    nodes = tuple(_crossing_node(truth, alive, p, c, config, nrng, times)
+                  for p, c, nrng in zip(config.p_detect, config.clutter_rate,
+                                        rng.spawn(len(config.p_detect)), strict=True))
+    return MultiTargetData(times, truth, alive, nodes)
+
+
+def _crossing_truth(config: CrossingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """truth (J, T, 4), NaN where not alive, and alive (J, T): step k holds a target born
+    at b and dying at e iff b < t_k <= e (on the grid)."""
+    x0, births, deaths, rates = config.targets()
+    dt, T = config.dt, config.n_steps
+    truth = np.full((len(x0), T, 4), np.nan)
+    for j in range(len(x0)):
+        b, e = round(births[j] / dt), min(round(deaths[j] / dt), T)
+        if e > b:
+            truth[j, b:e] = _propagate(x0[j], np.full(e - b, rates[j]), dt, config.q, False,
+                                       None)
+    return truth, ~np.isnan(truth[..., 0])
+
+
+def _crossing_node(truth, alive, p_d, clutter_rate, config, rng, times) -> NodeData:
+    """One node's measurements: each alive target with probability p_d, plus clutter."""
+    values, steps, origins = [], [], []
+    for k in range(truth.shape[1]):
+        seen = np.flatnonzero(alive[:, k] & (rng.random(len(truth)) < p_d))
+        y = truth[seen, k, :2] + config.meas_sd * rng.standard_normal((seen.size, 2))
+        n_c = rng.poisson(clutter_rate)
+        clutter = _uniform_in(config.region, n_c, rng)
+        order = rng.permutation(seen.size + n_c)
+        values.append(np.concatenate([y, clutter])[order])
+        origins.append(np.concatenate([seen, np.full(n_c, CLUTTER)])[order])
+        steps.append(np.full(seen.size + n_c, k))
+    return _node_data(np.concatenate(values), np.concatenate(steps),
+                      np.concatenate(origins), times)
