@@ -18,14 +18,20 @@ in Y (f(tY) = f / t, resp. f - n log t), along u Newton's model is poor far from
 optimum, and rho = 0.1 keeps 1% of its curvature there; below a relative certificate of
 1e-4, rho = 1. The minimiser of q is the point of conv{d_i}, d_i = W z_i - (rho c + 1/rho)
 zeta, nearest the origin, found by non-negative least squares (Lawson & Hanson 1974,
-ch. 23: min |E u - e| over u >= 0 with E = [d_i; 1], e = (0, 1), lam = u / sum u), warm
-started on the support of w; its support has at most m + 1 nodes whatever N. w moves
-towards lam with Armijo backtracking on f (allowing the rounding of f). It stops on the
-certificate (relative to f for "trace", absolute for "logdet") or, at rounding level, after
-5 steps without a better one; it returns the iterate with the best certificate.
+ch. 23: min |E u - e| over u >= 0 with E = [d_i; 1], e = (0, 1), lam = u / sum u, the d_i
+first scaled to unit size, which does not move lam), warm started on the support of w;
+its support has at most m + 1 nodes whatever N. w moves towards lam with Armijo
+backtracking on f (allowing the rounding of f); below a relative certificate of 1e-4,
+where the decrease of f can be below f's own rounding on an ill-conditioned problem, the
+whole step to lam is taken instead if its certificate is better than that of the line
+search's point. It stops on the certificate (relative to f for "trace", absolute for
+"logdet") or, at rounding level, after 5 steps below 1e-4 without a better one; it returns
+the iterate with the best certificate.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -101,8 +107,8 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
         if rel < best:
             best, stalled = rel, 0
             copy(best_w, w)
-        elif best <= _LOCAL:  # far from the optimum the certificate need not fall each step
-            stalled += 1
+        elif rel <= _LOCAL:  # far from the optimum (also after a change of support, from
+            stalled += 1     # a better point) the certificate need not fall each step
         if best <= tol or it >= max_iter or stalled >= _STALL:
             break
         it += 1
@@ -110,8 +116,39 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
             ws.mask[i] = w[i] > 0.0
         nearest(ws)
         f = _step_towards(F, trace, w, ws, f)
+        if rel <= _LOCAL and not _equal(w, ws.x):
+            f = _whole_step_if_better(F, trace, w, ws, f)
     copy(w, best_w)
     return best, it
+
+
+@jit
+def _whole_step_if_better(F, trace: bool, w, ws, f) -> float:
+    """Near the optimum the decrease of f along a Newton step (about the certificate
+    squared) can fall below the rounding of f (eps times the condition of the stacked
+    factors: 1e-12 of f at condition 1e10); the line search then rejects or shortens the
+    step at random and the SQP stalls above its tolerance. So when it did not take the
+    whole step to ws.x, the certificates decide, which stay accurate there: x replaces the
+    line search's point w if its certificate is better. ws is left factored at the point
+    whose f is returned."""
+    gradient(F, ws, trace)  # ws holds w's factors (_step_towards)
+    rel_w = gap(ws.g, w) / (abs(f) if trace else 1.0)
+    f_x, ok = evaluate(F, ws.x, ws, trace)
+    if ok:
+        gradient(F, ws, trace)
+        if gap(ws.g, ws.x) / (abs(f_x) if trace else 1.0) < rel_w:
+            copy(w, ws.x)
+            return f_x
+    evaluate(F, w, ws, trace)
+    return f
+
+
+@jit
+def _equal(a, b) -> bool:
+    for i in range(a.size):
+        if a[i] != b[i]:
+            return False
+    return True
 
 
 @jit
@@ -145,6 +182,7 @@ def nearest(ws):
     started on the nodes ws.mask when the least-squares solution there is positive."""
     Et, x, P = ws.Et, ws.x, ws.mask
     N, M = Et.shape
+    _normalise(Et)
     fill(x, 0.0)
     k = P.sum()
     if 0 < k <= ws.Elt.shape[0] and _least_squares(ws) and _positive_on(ws.z, P):
@@ -165,6 +203,28 @@ def nearest(ws):
         fill(x, 1.0 / N)
     else:
         x /= total
+
+
+@jit
+def _normalise(Et):
+    """Scales the d_i (the rows of Et without their last entry, the simplex's 1) by a
+    power of two (exactly) to a root mean square near 1. The nearest point does not depend
+    on their scale, but the rank test of the least squares and the tolerance of the duals
+    meet them against the simplex row of ones; for "trace" the d_i are of the size of
+    sqrt(f), which the prescaling leaves anywhere from 1e-12 to 1e12 (a fused trace far
+    below the nodes' middle scale), and at 1e-6 two nodes' difference fell below the rank
+    test and the SQP stalled above its tolerance."""
+    N, M = Et.shape
+    s = 0.0
+    for i in range(N):
+        for p in range(M - 1):
+            s += Et[i, p] * Et[i, p]
+    if not 0.0 < s < np.inf:
+        return
+    shift = -math.frexp(np.sqrt(s / N))[1]
+    for i in range(N):
+        for p in range(M - 1):
+            Et[i, p] = np.ldexp(Et[i, p], shift)
 
 
 @jit
