@@ -4,6 +4,11 @@
 One call from Python per batch (a single problem is a batch of one) keeps the fixed cost
 of a fusion in microseconds; every output goes into an array the caller made, since a
 compiled function that returns new arrays pays for boxing each of them.
+
+numba compiles the kernels it calls into this function's own cache entry and checks only
+this file's source when loading it: after a change to a kernel in another module (e.g.
+the solver of `backends/newton.py`), a machine that ran the old one keeps calling it here
+until this file changes or `fusion_opt/__pycache__/exact.*` is removed.
 """
 
 from __future__ import annotations
