@@ -61,3 +61,38 @@ def near_identical(rng: np.random.Generator, n: int, N: int, cond: float = 1e12,
         Pi = P + eps * np.linalg.norm(P, 2) * E * 10 ** rng.uniform(-3, 0)
         out.append(0.5 * (Pi + Pi.T))
     return np.array(out)
+
+
+EXTREME_KINDS = ("random", "ill-conditioned", "diagonal", "near-identical", "commuting")
+
+
+def extreme_instance(rng: np.random.Generator, N: int, n: int, kind: str, *,
+                     log10_cond: float = 12.0, base: float = 0.0,
+                     spread: float = 0.0) -> np.ndarray:
+    """Covariances (N, n, n) of one hard problem, node i multiplied by 10^(base + u_i) with
+    u_i uniform in [-spread/2, spread/2] (so its nodes lie up to 10^spread apart, around
+    10^base: 1e-310 gives denormal entries, 1e300 entries near the float range).
+
+    kind: "random" (as `instance`), "ill-conditioned" (each node its own rotation,
+    eigenvalues log-uniform over log10_cond decades), "diagonal" (the same, unrotated),
+    "near-identical" (`near_identical` at condition 10^log10_cond, relative differences
+    10^U(-12, -3)), "commuting" (one rotation for all nodes, eigenvalues log-uniform per
+    node and axis: each node best on other axes)."""
+    span = (0.0, log10_cond)
+    if kind == "random":
+        C = instance(rng, N, n, "random")
+    elif kind == "ill-conditioned":
+        C = np.stack([random_spd(rng, n, span) for _ in range(N)])
+    elif kind == "diagonal":
+        C = np.stack([np.diag(10.0 ** rng.uniform(*span, n)) for _ in range(N)])
+    elif kind == "near-identical":
+        C = near_identical(rng, n, N, 10.0 ** log10_cond, 10.0 ** rng.uniform(-12, -3))
+    elif kind == "commuting":
+        Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+        eig = 10.0 ** rng.uniform(*span, (N, n))
+        C = (Q * eig[:, None, :]) @ Q.T
+    else:
+        raise ValueError(f"unknown kind {kind!r}")
+    scale = 10.0 ** (base + rng.uniform(-spread / 2, spread / 2, N))
+    C = C * scale[:, None, None]
+    return 0.5 * (C + np.swapaxes(C, -1, -2))
