@@ -13,12 +13,16 @@ Each step:
    cross-covariance); all the groups of one size go to ONE `fo.fuse_batch` call. MBCI
    scales each member's information by the product over the group's own sources,
        s_i = p_i + (1 - p_i) chi prod_{j in group, j != i} (p_j + (1 - p_j) chi);
-3. give each fused track an id: a group inherits the id of the previous step's fused
-   track with which it shares the most (source, source track id) pairs, ties going to the
-   nearer one over `dims`; greedily, largest overlap first, so an id goes to at most one
-   group; a group sharing no pair with a free id gets a new id, never reused (until
-   `reset`). So a target keeps its fused id while any of its source tracks continues:
-   through a missed report at one source and when one source restarts its track.
+3. give each fused track an id: a group inherits the id of a recent fused track (one
+   reported at one of the last `memory` steps; memory = 1: the previous step's) with
+   which it shares the most (source, source track id) pairs, ties going to the more
+   recent, then to the nearer one over `dims`; greedily, largest overlap first, so an id
+   goes to at most one group; a group sharing no pair with a free id gets a new id, never
+   reused (until `reset`). So a target keeps its fused id while any of its source tracks
+   continues: through a missed report at one source, when one source restarts its track,
+   and, for up to `memory` - 1 steps, through steps at which no group of it is reported
+   (every source missed it, or too few did for `min_sources`). A fused track remembers
+   the pairs and the mean of the last step it was reported at.
 
 A source whose report is missing contributes nothing that step. The fused `Estimates`
 are ordered by id, stamped `node=name` and with `time`: the step's `time` if given, else
@@ -32,6 +36,7 @@ from __future__ import annotations
 import numbers
 from collections import Counter, defaultdict
 from collections.abc import Hashable, Mapping
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,11 +64,13 @@ class ProcessingNode:
     chi in (0, 1] or growth = 1 / chi >= 1 (the paper's chi^-1), "mbci" only: chi = 1.0 by
     default (MBCI then equals BCI), growth replaces it when given (with chi left at 1);
     min_sources: groups of fewer sources are dropped (1 passes single estimates on);
+    memory: steps a fused track's id stays claimable after it was last reported (>= 1;
+    1: only the previous step's tracks);
     name: stamped on the fused Estimates as `node` and named in errors."""
 
     def __init__(self, sources, *, method="mbci", criterion="trace", backend="newton",
                  association="nearest", threshold, dims=None, p_detect=None, chi=1.0,
-                 growth=None, min_sources=1, name=None):
+                 growth=None, min_sources=1, memory=1, name=None):
         self.name = _check_name(name)
         self.sources = self._check_sources(sources)
         self.method = self._check_method(method)
@@ -74,12 +81,14 @@ class ProcessingNode:
         self.dims = check_dims(dims)
         self.p_detect, self.chi = self._check_detection(p_detect, chi, growth)
         self.min_sources = self._check_min_sources(min_sources)
+        self.memory = self._check_memory(memory)
         self.reset()
 
     def reset(self) -> None:
         """Forget the fused tracks and restart ids at 0, as newly built."""
         self.groups: dict[int, Group] = {}
-        self._last: Estimates | None = None
+        self._tracks: dict[int, _Track] = {}  # fused id -> what it was when last reported
+        self._steps = 0
         self._next_id = 0
         self._n: int | None = None
 
@@ -95,7 +104,7 @@ class ProcessingNode:
         order = np.argsort(ids, kind="stable")
         fused = Estimates(means[order], covs[order], ids[order], time, self.name)
         self.groups = {int(ids[i]): groups[i] for i in order}
-        self._last = fused
+        self._remember(fused)
         return fused
 
     def _fuse(self, groups: list[Group]) -> tuple[np.ndarray, np.ndarray]:
@@ -122,17 +131,20 @@ class ProcessingNode:
 
     def _ids(self, groups: list[Group], means: np.ndarray) -> np.ndarray:
         """Fused track ids (G,): inherited by shared (source, track id) pairs, else new."""
-        previous = {pair: fid for fid, g in self.groups.items() for pair in g.pairs}
-        group, fid, shared = [], [], []  # one entry per (group, previous track) sharing pairs
+        owner = {}  # (source, track id) -> the most recent fused track holding it
+        for f, track in sorted(self._tracks.items(), key=lambda item: item[1].step):
+            owner.update(dict.fromkeys(track.pairs, f))
+        group, fid, shared = [], [], []  # one entry per (group, recent track) sharing pairs
         for i, g in enumerate(groups):
-            for f, count in Counter(previous[p] for p in g.pairs if p in previous).items():
+            for f, count in Counter(owner[p] for p in g.pairs if p in owner).items():
                 group.append(i)
                 fid.append(f)
                 shared.append(count)
+        age = [self._steps - self._tracks[f].step for f in fid]
         distance = self._distances(means[group], fid)
         ids = np.full(len(groups), -1, dtype=np.int64)
         taken = set()
-        for k in np.lexsort((fid, group, distance, np.negative(shared))).tolist():
+        for k in np.lexsort((fid, group, distance, age, np.negative(shared))).tolist():
             if ids[group[k]] < 0 and fid[k] not in taken:
                 ids[group[k]] = fid[k]
                 taken.add(fid[k])
@@ -142,11 +154,20 @@ class ProcessingNode:
         return ids
 
     def _distances(self, means: np.ndarray, fids: list[int]) -> np.ndarray:
-        """Distances over dims from fused means (K, n) to last step's fused tracks fids."""
+        """Distances over dims from fused means (K, n) to the last means of fused tracks
+        fids (K,)."""
         if not fids:  # also at the first step, before any fused track
             return np.zeros(0)
-        d = means - self._last.means[np.searchsorted(self._last.ids, fids)]
+        d = means - np.array([self._tracks[f].mean for f in fids])
         return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
+
+    def _remember(self, fused: Estimates) -> None:
+        """Keep this step's fused tracks, forget those older than `memory` steps."""
+        self._steps += 1
+        for f, mean in zip(fused.ids.tolist(), fused.means, strict=True):
+            self._tracks[f] = _Track(self.groups[f].pairs, mean, self._steps)
+        oldest = self._steps - self.memory + 1
+        self._tracks = {f: t for f, t in self._tracks.items() if t.step >= oldest}
 
     # --- input checks, each naming the node and the argument or source ---
 
@@ -222,6 +243,11 @@ class ProcessingNode:
                             f"(the number of sources), got {min_sources!r}")
         return int(min_sources)
 
+    def _check_memory(self, memory) -> int:
+        if isinstance(memory, bool) or not isinstance(memory, numbers.Integral) or memory < 1:
+            raise self._err(f"memory must be an integer >= 1 (steps), got {memory!r}")
+        return int(memory)
+
     def _check_reports(self, reports) -> dict[Hashable, Estimates]:
         """The reports in the order of `sources`; unknown sources, non-Estimates and
         another state dimension refused by name. Sets the node's n at the first report."""
@@ -257,6 +283,14 @@ class ProcessingNode:
             raise self._err(f"reports carry different times {times}; pass time= to stamp "
                             f"the fused estimates")
         return next(iter(times.values()), None)
+
+
+class _Track(NamedTuple):
+    """A fused track as last reported: its group's pairs, its mean (n,), the step."""
+
+    pairs: tuple
+    mean: np.ndarray
+    step: int
 
 
 def _check_name(name):

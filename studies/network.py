@@ -23,7 +23,9 @@ detection every 20 steps) and has its own clutter rate.
   nodes 6 and 11 (as Table 2's processing nodes share nodes 3 and 5), and one
   second-level node over the three: its sources share information (the common target
   and the overlapping nodes), which CI-family rules tolerate and naive fusion counts
-  twice. Association by position (network.association, network.threshold).
+  twice. Association by position (network.association, network.threshold); a group of
+  fewer than network.min_sources sources is dropped, and a fused id stays claimable for
+  network.memory steps after its track was last reported (ProcessingNode's memory).
 - MBCI: each monitoring node's p_D as its p_detect; a first-level node, as a source of the
   second level, has p_detect = 1 - prod_i (1 - p_D[i]) over its monitoring nodes (our
   assumption: the probability that at least one of them detects the target at a step),
@@ -175,7 +177,8 @@ def _check_table(table, where: str, rules: dict) -> dict:
 def _check_network(net, monitors: int) -> int:
     """Check [network]; returns the most sources any processing node fuses."""
     configs.fields(net, "network", ("level1", "level2", "association", "threshold",
-                                    "min_sources"))
+                                    "min_sources", "memory"))
+    configs.integer("network.memory", net["memory"], low=1)
     configs.choice("network.association", net["association"], ("nearest", "assignment"))
     configs.number("network.threshold", net["threshold"], above=0)
     level1 = _check_level(net["level1"], "network.level1",
@@ -259,7 +262,8 @@ def build_network(config: dict, rngs) -> fo.Network:
                 sources, **_rule_args(config, spec, p_detect), name=name,
                 association=config["network"]["association"],
                 threshold=config["network"]["threshold"], dims=POSITION,
-                min_sources=config["network"]["min_sources"][level])
+                min_sources=config["network"]["min_sources"][level],
+                memory=config["network"]["memory"])
     return fo.Network(trackers, processing)
 
 

@@ -187,6 +187,38 @@ def test_all_sources_of_a_target_restart_gives_a_new_id():
     assert node.step({"a": _report(rng, truth, [3])}).ids.tolist() == [0]
 
 
+@pytest.mark.parametrize("memory, expected", [(1, [0, 2]), (2, [0, 2]), (3, [0, 0])])
+def test_memory_keeps_an_id_through_steps_without_its_group(memory, expected):
+    """Target 0 is reported by no source for 2 steps (a lost link, or too few sources for
+    min_sources), its source tracks unchanged: with memory >= 3 it comes back with its
+    fused id, with less it gets a new one. Target 1, always seen, keeps its id."""
+    rng = np.random.default_rng(18)
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=5.0, memory=memory)
+    truth = _two_targets(0)
+    both = {"a": _report(rng, truth, [1, 2]), "b": _report(rng, truth, [7, 8])}
+    one = {"a": _report(rng, truth[1:], [2]), "b": _report(rng, truth[1:], [8])}
+    before = node.step(both)
+    node.step(one)
+    node.step(one)
+    after = node.step(both)
+    target_0 = [int(e.ids[np.argmin(np.linalg.norm(e.means - truth[0], axis=1))])
+                for e in (before, after)]
+    assert target_0 == expected
+
+
+def test_memory_prefers_the_most_recent_track_holding_a_pair():
+    """Source a's track 1 was in fused track 0, then (after a gap) in fused track 1 with
+    a new partner; the next group holding a1 inherits 1, the more recent."""
+    rng = np.random.default_rng(19)
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=5.0, memory=5)
+    x = np.array([[0.0, 0.0]])
+    node.step({"a": _report(rng, x, [1]), "b": _report(rng, x, [5])})  # fused 0: a1 b5
+    node.step({"b": _report(rng, x + 20, [6])})                          # fused 1: b6
+    node.step({"a": _report(rng, x + 20, [1]), "b": _report(rng, x + 20, [6])})
+    assert node.groups[1].pairs == (("a", 1), ("b", 6))
+    assert node.step({"a": _report(rng, x + 20, [1])}).ids.tolist() == [1]
+
+
 def test_an_id_goes_to_the_group_sharing_most_then_to_the_nearest():
     rng = np.random.default_rng(16)
     node = fo.ProcessingNode(["a", "b", "c"], method="bci", threshold=5.0)
@@ -286,6 +318,8 @@ GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
     (["a", "b"], dict(method="bci", p_detect={"a": 1, "b": 1}), "p_detect apply to.*mbci"),
     (["a", "b"], dict(method="bci", p_detect=None, chi=0.5), "chi apply to.*mbci"),
     (["a", "b"], dict(method="bci", growth=1.5), "growth apply to.*mbci"),
+    (["a", "b"], dict(memory=0), "memory must be an integer >= 1"),
+    (["a", "b"], dict(memory=2.5), "memory must be an integer >= 1"),
     (["a", "b"], dict(method=np.array(["bci", "mbci"])), "method must be one of"),
     (["a", "b"], dict(backend=["newton"]), "backend must be one of"),
     (["a", "b"], dict(min_sources=3), r"min_sources must be an integer in \[1, 2\]"),

@@ -79,6 +79,7 @@ def _with(path: tuple, value) -> dict:
     (("network", "level1", "A"), [1, 17], r"network.level1.A\[1\] must be an integer"),
     (("network", "level2", "top"), ["A", "Z"], r"network.level2.top\[1\] must be one of"),
     (("network", "min_sources", "level2"), 4, "network.min_sources.level2 must be"),
+    (("network", "memory"), 0, "network.memory must be an integer >= 1"),
     (("rules", "CI"), {"method": "ci", "criterion": "trace"}, "rules.CI.method must be"),
     (("rules", "MBCI"), {"method": "mbci"}, r"\[rules.MBCI\] lacks field\(s\) \['criterion'\]"),
     (("rules", "naive"), {"method": "naive", "criterion": "trace"},
