@@ -17,7 +17,7 @@ from .batch import fuse_batch
 from .estimates import Estimates
 from .fusion import bci, ci, fuse, mbci, optimality_gap, warmup
 from .limits import limits
-from .mbci import detection_scales
+from .detection import detection_scales
 from .network import Network
 from .processing import ProcessingNode
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status

@@ -43,7 +43,7 @@ from .assemble import assemble
 from .exact import fuse_exact
 from .backends import BACKENDS, EXACT, REGISTRY, newton
 from .limits import conic_bytes, limits, working_bytes
-from .mbci import detection_split
+from .detection import detection_split
 from .prepare import ASYMMETRIC, COVS_NONFINITE, MEANS_NONFINITE, NOT_PD, SPREAD, prepare
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 from .scaling import conic_data

@@ -61,11 +61,18 @@ def mbci(means, covs, p_detect, chi=None, criterion="trace", backend=None, *, gr
 
 
 def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_args):
-    """Fuse estimates means (N, n), covs (N, n, n) with a named method.
+    """Fuse estimates means (N, n), covs (N, n, n) with a named method; a FusionResult.
 
-    method: "ci" (N must be 2), "bci", "mbci" (method_args p_detect, and chi or growth),
-    or a rule of `rules.py`: "naive", "known-cross" (method_args cross), "fast-ci", "ifci",
-    "ici" (N = 2), "ei" (N = 2). The rules take no backend. All options: `core.py`.
+    method: "bci" (default), "ci" (N = 2) or "mbci", whose weights minimise the criterion
+    ("trace" or "logdet") over the simplex, solved by `backend` (one of fo.BACKENDS;
+    default "newton", exact and compiled; "clarabel" is the conic reference); or a rule
+    without a weight solver, which takes no backend: "naive" (independent errors),
+    "known-cross" (the BLUE given the joint covariance), "fast-ci", "ifci", "ici" (N = 2),
+    "ei" (N = 2); `fusion_opt.rules` says what each assumes.
+    method_args: for "mbci", p_detect in [0, 1] and exactly one of chi in (0, 1] or
+    growth = 1 / chi >= 1 (each a scalar or (N,)); for "known-cross", cross (N, N, n, n),
+    cross[i, j] = cov(e_i, e_j); polish=False returns a conic or SLSQP backend's weights
+    unpolished. Anything else is refused by name.
     """
     names = _PAIR if method == "ci" else Names()
     req = core.request(method, criterion, backend, dict(method_args))
@@ -74,7 +81,9 @@ def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_ar
 
 def optimality_gap(covs, weights, criterion="trace") -> float:
     """The certificate g(w).w - min_i g_i(w) >= f(w) - f* at weights (N,) for covs
-    (N, n, n), in the objective's units (DESIGN §1)."""
+    (N, n, n), in the objective's units: g is the gradient of f, -tr(P Y_i P) ("trace")
+    or -tr(P Y_i) ("logdet") with P = P(w), and by convexity no weights do better than
+    f(w) - gap."""
     covs = real_array(covs, "covs")
     if covs.ndim != 3:
         raise FusionInputError(f"covs must have shape (N, n, n), got {covs.shape}")

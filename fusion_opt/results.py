@@ -81,8 +81,9 @@ class FusionResult:
     known-cross, ei) the gain shares tr(K_i) / n, which sum to 1 and may be negative;
     `weights_are` says which ("ci_weights" or "gain_shares"). mean (n,); cov (n, n) the
     fused covariance (for MBCI the modified one, Phat); objective tr(cov) ("trace") or
-    log det(cov) ("logdet"); gap the optimality certificate of DESIGN §1 at `weights`
-    (f(w) - f* <= gap), in the objective's units (0 for rules without an optimisation);
+    log det(cov) ("logdet"); gap the optimality certificate at `weights`,
+    g(w).w - min_i g_i(w) with g the gradient of the objective (so f(w) - f* <= gap by
+    convexity), in the objective's units (0 for rules without an optimisation);
     status a `Status`; backend the weight solver; solve_time the wall time of the weight
     solve in seconds (solver and polish); iterations the solver's, polish_iterations those
     of the Newton polish.

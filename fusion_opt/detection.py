@@ -27,8 +27,14 @@ _LOG2E = 1.0 / np.log(2.0)
 
 def detection_scales(p_detect, chi=None, n_nodes: int | None = None, *,
                      growth=None) -> np.ndarray:
-    """s (..., N) of the module docstring; refused when a scale underflows float64 (MBCI
-    itself fuses such nodes, `detection_split`)."""
+    """MBCI's detection scales s (..., N), by which each node's information is multiplied:
+
+        s_i = p_i + (1 - p_i) chi_i prod_{j != i} (p_j + (1 - p_j) chi_j),   0 < s_i <= 1,
+
+    for p_detect in [0, 1] and exactly one of chi in (0, 1] or growth = 1 / chi >= 1 (the
+    paper's chi^-1), each a scalar, (N,) or (..., N); n_nodes gives N when both are
+    scalars. Refused when a scale underflows float64 (fo.mbci itself fuses such nodes).
+    """
     q, E = detection_split(p_detect, chi, n_nodes, growth=growth)
     if (E < -1022).any():
         raise FusionInputError(
