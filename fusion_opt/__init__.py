@@ -14,10 +14,10 @@ optimality certificate on every result; and the network they serve: `Estimates`,
 from .association import Group, associate
 from .backends import BACKENDS
 from .batch import fuse_batch
+from .detection import detection_scales
 from .estimates import Estimates
 from .fusion import bci, ci, fuse, mbci, optimality_gap, warmup
 from .limits import limits
-from .detection import detection_scales
 from .network import Network
 from .processing import ProcessingNode
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status

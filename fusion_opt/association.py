@@ -38,6 +38,7 @@ from scipy.spatial.distance import cdist
 from .estimates import Estimates
 from .results import FusionInputError
 
+__all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
 
 

@@ -40,10 +40,10 @@ import numpy as np
 
 from . import rules
 from .assemble import assemble
-from .exact import fuse_exact
 from .backends import BACKENDS, EXACT, REGISTRY, newton
-from .limits import conic_bytes, limits, working_bytes
 from .detection import detection_split
+from .exact import fuse_exact
+from .limits import conic_bytes, limits, working_bytes
 from .prepare import ASYMMETRIC, COVS_NONFINITE, MEANS_NONFINITE, NOT_PD, SPREAD, prepare
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 from .scaling import conic_data

@@ -37,24 +37,20 @@ class Estimates:
     node: Hashable | None = None
 
     def __post_init__(self):
-        means = finite_array(self.means, "means")
-        if means.ndim != 2 or means.shape[1] == 0:
-            raise FusionInputError(f"means must have shape (m, n) with n >= 1, got {means.shape}")
-        m, n = means.shape
-        covs = finite_array(self.covs, "covs")
-        if covs.shape != (m, n, n):
-            raise FusionInputError(f"covs must have shape {(m, n, n)} to match means, got "
-                                   f"{covs.shape}")
-        covs = check_spd(covs, "covs", item="estimate")
-        ids = _ids(self.ids, m)
-        for name, value in (("means", means), ("covs", covs), ("ids", ids)):
-            value = np.array(value, copy=True)
-            value.setflags(write=False)
-            object.__setattr__(self, name, value)
-        object.__setattr__(self, "time", _time(self.time))
         if self.node is not None and not isinstance(self.node, Hashable):
             raise FusionInputError(f"node must be hashable (a name), got "
                                    f"{type(self.node).__name__}")
+        try:
+            object.__setattr__(self, "time", _time(self.time))
+            arrays = _arrays(self.means, self.covs, self.ids)
+        except FusionInputError as exc:  # say whose estimates, when it is known
+            where = " ".join(f"{k} {v!r}" for k, v in (("of node", self.node),
+                                                      ("at time", self.time)) if v is not None)
+            raise FusionInputError(f"Estimates {where}: {exc}" if where else str(exc)) from None
+        for name, value in zip(("means", "covs", "ids"), arrays, strict=True):
+            value = np.array(value, copy=True)
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
 
     @classmethod
     def empty(cls, n: int, time: float | None = None, node: Hashable | None = None):
@@ -81,10 +77,30 @@ class Estimates:
                 f"time={self.time}, node={self.node!r})")
 
 
+def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """means (m, n), covs (m, n, n) symmetrised and ids (m,), checked by name."""
+    means = finite_array(means, "means")
+    if means.ndim != 2 or means.shape[1] == 0:
+        hint = " (no estimate: Estimates.empty(n))" if means.size == 0 else ""
+        raise FusionInputError(f"means must have shape (m, n) with n >= 1, got "
+                               f"{means.shape}{hint}")
+    m, n = means.shape
+    ids = _ids(ids, m)
+    covs = finite_array(covs, "covs")
+    if covs.shape != (m, n, n):
+        raise FusionInputError(f"covs must have shape {(m, n, n)} to match means, got "
+                               f"{covs.shape}")
+    return means, check_spd(covs, "covs", item="estimate", labels=ids), ids
+
+
 def _ids(ids, m: int) -> np.ndarray:
     """Integer track ids (m,), unique; arange(m) when None."""
     if ids is None:
         return np.arange(m, dtype=np.int64)
+    if np.asarray(ids).dtype.kind in "USO":
+        raise FusionInputError("ids must be integers (map other track names to integers), "
+                               "got " + ("strings" if np.asarray(ids).dtype.kind != "O"
+                                         else "objects"))
     a = real_array(ids, "ids")
     if a.shape != (m,):
         raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")

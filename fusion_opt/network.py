@@ -25,7 +25,8 @@ fixed at construction) and a cycle is refused. Each step:
   next step);
 - time: trackers stamp their own estimates; `time`, when given, is passed to every
   processing node, which stamps its fused estimates with it; without it each processing
-  node takes the common time of its reports.
+  node takes the common time of its reports. A processing node built without a name has
+  its fused Estimates stamped with its name in the network.
 
 `step` returns the Estimates of every node that reported; `run` returns each node's
 Estimates in step order (one per step at which it reported: one per step when every
@@ -34,6 +35,7 @@ tracker has a scan at every step).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any, Protocol
 
@@ -96,10 +98,12 @@ class Network:
 
 
 def _processing_step(name, node, reports, time) -> Estimates:
+    """The node's fused Estimates, stamped with its network name if it has none."""
     try:
-        return node.step(reports, time)
+        fused = node.step(reports, time)
     except FusionInputError as exc:  # name the node as the network knows it
         raise FusionInputError(f"processing node {name!r}: {exc}") from exc
+    return fused if fused.node is not None else dataclasses.replace(fused, node=name)
 
 
 def _tracker_step(name, tracker, scan) -> Estimates:

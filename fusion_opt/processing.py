@@ -224,16 +224,18 @@ class ProcessingNode:
                             f"unknown {unknown}")
         for s in self.sources:
             if not _real(p_detect[s]) or not 0.0 <= p_detect[s] <= 1.0:
-                raise self._err(f"p_detect of source {s!r} must be in [0, 1], got "
+                raise self._err(f"p_detect of source {s!r} must be a number in [0, 1], got "
                                 f"{p_detect[s]!r}")
         if growth is not None:
             if not (_real(chi) and chi == 1.0):
                 raise self._err("give chi or growth (= 1 / chi), not both")
             if not _real(growth) or not 1.0 <= growth < np.inf:
-                raise self._err(f"growth must be a finite number >= 1, got {growth!r}")
+                raise self._err(f"growth must be one finite number >= 1, the same for every "
+                                f"source, got {growth!r}")
             chi = 1.0 / growth
         if not _real(chi) or not 0.0 < chi <= 1.0:
-            raise self._err(f"chi must be in (0, 1], got {chi!r}")
+            raise self._err(f"chi must be one number in (0, 1], the same for every source, "
+                            f"got {chi!r}")
         return {s: float(p_detect[s]) for s in self.sources}, float(chi)
 
     def _check_min_sources(self, min_sources) -> int:

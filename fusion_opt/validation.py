@@ -16,10 +16,12 @@ CRITERIA = ("trace", "logdet")
 SYMMETRY_RTOL = 1e-8
 
 
-def _where(index: tuple[int, ...], item: str = "node") -> str:
-    """'node 3' or 'problem 2, node 3' for a multi-index (batch..., node)."""
+def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
+    """'node 3' or 'problem 2, node 3' for a multi-index (batch..., node); 'estimate 3
+    (id 17)' with labels."""
     if len(index) == 1:
-        return f"{item} {index[0]}"
+        label = "" if labels is None else f" (id {labels[index[0]]})"
+        return f"{item} {index[0]}{label}"
     return f"problem {index[:-1] if len(index) > 2 else index[0]}, {item} {index[-1]}"
 
 
@@ -85,9 +87,11 @@ def finite_array(x, name: str) -> np.ndarray:
     return a
 
 
-def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node") -> np.ndarray:
+def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
+              labels=None) -> np.ndarray:
     """Symmetric within SYMMETRY_RTOL of its largest entry, and positive definite; returns
-    the symmetrised stack (..., n, n). Messages name `name` and the `item` index."""
+    the symmetrised stack (..., n, n). Messages name `name` and the `item` index, and its
+    label (e.g. a track id) from labels (m,) for a stack (m, n, n)."""
     if covs.size == 0:
         return covs
     scale = np.abs(covs).max(axis=(-2, -1))
@@ -96,14 +100,14 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node") -> np.nd
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
         raise FusionInputError(
-            f"{name} of {_where(idx, item)} is not symmetric: max |P - P^T| = "
+            f"{name} of {_where(idx, item, labels)} is not symmetric: max |P - P^T| = "
             f"{asym[idx]:.3g} exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
     sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
     ok = _cholesky_ok(sym)
     if not ok.all():
         idx = tuple(int(i) for i in np.argwhere(~ok)[0])
         eig = np.linalg.eigvalsh(sym[idx]).min()
-        raise FusionInputError(f"{name} of {_where(idx, item)} is not positive definite "
+        raise FusionInputError(f"{name} of {_where(idx, item, labels)} is not positive definite "
                                f"(smallest eigenvalue {eig:.3g})")
     return sym
 
