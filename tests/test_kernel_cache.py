@@ -1,0 +1,140 @@
+"""numba's cache of the compiled kernels is dropped whenever a kernel module changes
+(`linalg.drop_stale_caches`): numba itself checks only each function's own file, so a
+cached caller would keep the old code of a kernel edited in another file."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numba
+import pytest
+
+from fusion_opt import linalg
+
+STAMP = "fusion_opt-kernels.stamp"
+
+
+def _write(path, text):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(textwrap.dedent(text))
+
+
+def _tree(tmp_path):
+    """A package with kernel files in two folders, one plain file, and a fake cache."""
+    root = tmp_path / "pkg"
+    _write(root / "k.py", "@jit\ndef f():\n    return 1\n")
+    _write(root / "sub" / "m.py", "@jit\ndef g():\n    return 2\n")
+    _write(root / "plain.py", "x = 1\n")
+    return root
+
+
+def _fake_cache(root):
+    files = [root / "__pycache__" / "k.f-1.py311.nbi", root / "__pycache__" / "k.f-1.py311.1.nbc",
+             root / "sub" / "__pycache__" / "m.g-1.py311.nbi"]
+    for f in files:
+        f.parent.mkdir(exist_ok=True)
+        f.write_bytes(b"cached")
+    pyc = root / "__pycache__" / "k.cpython-311.pyc"
+    pyc.write_bytes(b"bytecode")
+    return files, pyc
+
+
+def test_a_changed_kernel_source_drops_every_cache_and_an_unchanged_tree_keeps_it(tmp_path):
+    root = _tree(tmp_path)
+    caches = {str(root / "__pycache__"), str(root / "sub" / "__pycache__")}
+    files, pyc = _fake_cache(root)
+    assert set(linalg.drop_stale_caches(str(root))) == caches  # no stamp yet: dropped
+    assert not any(f.exists() for f in files) and pyc.exists()
+    stamp = (root / "__pycache__" / STAMP).read_text()
+    assert (root / "sub" / "__pycache__" / STAMP).read_text() == stamp
+
+    files, _ = _fake_cache(root)
+    assert linalg.drop_stale_caches(str(root)) == []  # unchanged: kept
+    (root / "plain.py").write_text("x = 2\n")  # not a kernel module: kept
+    assert linalg.drop_stale_caches(str(root)) == []
+    assert all(f.exists() for f in files)
+
+    (root / "sub" / "m.py").write_text("@jit\ndef g():\n    return 3\n")
+    assert set(linalg.drop_stale_caches(str(root))) == caches  # both folders, not only sub's
+    assert not any(f.exists() for f in files) and pyc.exists()
+    new = (root / "__pycache__" / STAMP).read_text()
+    assert new != stamp and (root / "sub" / "__pycache__" / STAMP).read_text() == new
+    assert not list(root.rglob("*.tmp"))
+
+
+def test_the_stamp_follows_numba_to_a_cache_outside_the_tree(tmp_path, monkeypatch):
+    """Where numba caches elsewhere (NUMBA_CACHE_DIR here; the user-wide cache of a
+    read-only install alike), the stamp and the dropping go there."""
+    root = _tree(tmp_path)
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "user"))
+    dropped = linalg.drop_stale_caches(str(root))
+    assert len(dropped) == 2 and all(d.startswith(str(tmp_path / "user")) for d in dropped)
+    assert all(os.path.exists(os.path.join(d, STAMP)) for d in dropped)
+    assert not (root / "__pycache__").exists()
+
+
+def test_a_cache_that_cannot_be_read_or_written_does_not_fail(tmp_path, monkeypatch):
+    root = _tree(tmp_path)
+    _fake_cache(root)
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    monkeypatch.setattr(linalg, "_cache_folder", lambda py_file: str(blocker))
+    assert linalg.drop_stale_caches(str(root)) == []
+    monkeypatch.undo()
+
+    def refuse(*args):
+        raise PermissionError("read-only")
+
+    monkeypatch.setattr(linalg.os, "replace", refuse)  # a stamp that cannot be written
+    monkeypatch.setattr(linalg.os, "remove", refuse)
+    linalg.drop_stale_caches(str(root))
+    assert not (root / "__pycache__" / STAMP).exists()
+
+
+def test_processes_starting_at_once_do_not_fail(tmp_path):
+    root = _tree(tmp_path)
+    _fake_cache(root)
+    code = f"from fusion_opt.linalg import drop_stale_caches; drop_stale_caches({str(root)!r})"
+    procs = [subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
+             for _ in range(6)]
+    for p in procs:
+        assert p.wait(timeout=60) == 0, p.stderr.read().decode()
+    assert linalg.drop_stale_caches(str(root)) == []  # one consistent stamp left
+    assert not list(root.rglob("*.tmp"))
+
+
+BASE = """
+    import os
+    from numba import njit
+    if not os.environ.get("NO_DROP"):
+        from fusion_opt.linalg import drop_stale_caches
+        drop_stale_caches(os.path.dirname(os.path.abspath(__file__)))
+    jit = njit(cache=True)
+"""
+
+
+def _call(root, env=None):
+    env = {**os.environ, "PYTHONPATH": str(root.parent), **(env or {})}
+    out = subprocess.run([sys.executable, "-c", "import kpkg.outer; print(kpkg.outer.call())"],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return int(out.stdout)
+
+
+@pytest.mark.parametrize("drop", [False, True])
+def test_a_cached_caller_runs_the_edited_kernel(tmp_path, drop):
+    """The hazard itself with numba's real cache: outer.call (cached) calls inner.value;
+    after an edit of inner.py alone, numba on its own still runs the old value (drop=False:
+    what happened to exact.fuse_exact), and with drop_stale_caches the new one."""
+    root = tmp_path / "kpkg"
+    _write(root / "__init__.py", "")
+    _write(root / "base.py", BASE)
+    _write(root / "inner.py", "from .base import jit\n@jit\ndef value():\n    return 1\n")
+    _write(root / "outer.py", "from .base import jit\nfrom .inner import value\n"
+                              "@jit\ndef call():\n    return value()\n")
+    env = None if drop else {"NO_DROP": "1"}
+    assert _call(root, env) == 1
+    assert _call(root, env) == 1  # from the cache
+    _write(root / "inner.py", "from .base import jit\n@jit\ndef value():\n    return 2\n")
+    assert _call(root, env) == (2 if drop else 1)
