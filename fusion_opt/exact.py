@@ -6,9 +6,9 @@ of a fusion in microseconds; every output goes into an array the caller made, si
 compiled function that returns new arrays pays for boxing each of them.
 
 numba compiles the kernels it calls into this function's own cache entry and checks only
-this file's source when loading it: after a change to a kernel in another module (e.g.
-the solver of `backends/newton.py`), a machine that ran the old one keeps calling it here
-until this file changes or `fusion_opt/__pycache__/exact.*` is removed.
+this file's source when loading it; `linalg.drop_stale_caches` drops every cached kernel
+of the package when any kernel module changes, so an edit of another module (e.g. the
+solver of `backends/newton.py`) cannot leave an old copy running here.
 """
 
 from __future__ import annotations

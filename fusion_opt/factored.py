@@ -34,6 +34,10 @@ g_i = -zeta . z_i, with
 (for "trace", H_ij = 2 tr(P Y_i P Y_j P) = 2 tr(X_i D X_j) with D = R^-T R^-1, and the
 factor R^-T of D gives the Gram form without an eigendecomposition).
 
+`improvement(F, w, j, ...)` computes the difference f(w) - f(e_j) in node j's whitened
+coordinates with its own, much smaller, rounding bound (assemble.py's best-vertex rule
+derives it).
+
 Every routine works in a `Work` of buffers made once per problem (`work(N, n)`).
 """
 
@@ -43,7 +47,18 @@ from collections import namedtuple
 
 import numpy as np
 
-from .linalg import copy, gram, householder, jit, matmul, matmul_t, upper_inverse
+from .linalg import (
+    cholesky,
+    copy,
+    gram,
+    householder,
+    jit,
+    lower_inverse,
+    matmul,
+    matmul_t,
+    upper_inverse,
+)
+from .prepare import scaled
 
 _SQRT2 = np.sqrt(2.0)
 _EPS = np.finfo(np.float64).eps
@@ -169,6 +184,304 @@ def vertex_error(F, pnorm, trace: bool) -> float:
     if trace:
         return n * _EPS
     return _ERR_C * n * _EPS * pnorm * _sumsq(F)
+
+
+Verify = namedtuple("Verify", ["S", "C", "Ci", "aC", "Sig", "ESig", "B", "Eb", "L", "Li",
+                               "Minv", "K", "H", "G", "T", "U", "U2", "V", "d"])
+
+
+@jit
+def verify_work(n: int) -> Verify:
+    """The buffers of `improvement` in dimension n."""
+    m = [np.empty((n, n)) for _ in range(18)]
+    return Verify(m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8], m[9], m[10], m[11],
+                  m[12], m[13], m[14], m[15], m[16], m[17], np.empty(n))
+
+
+@jit
+def improvement(F, w, j, covs, q, shift, eta, trace: bool, v: Verify):
+    """(D, bound): D = f(w) - f(e_j) computed in node j's whitened coordinates, and a
+    first-order bound on |D - D_exact|, D_exact that difference for the covariances covs
+    (N, n, n) as given, divided by the detection scales q 2^shift (in scaled units; eta (N,)
+    bounds each scale's relative error). assemble.py's docstring derives both. D = inf when
+    the whitened problem cannot be formed (then nothing is verified)."""
+    N, n = F.shape[0], F.shape[1]
+    eps = _EPS
+    C = v.C
+    scaled(covs[j], q[j], shift[j], v.S)
+    if not cholesky(v.S, C):
+        return np.inf, np.inf
+    for a in range(n):
+        for b in range(n):
+            v.aC[a, b] = abs(C[a, b])
+            v.Sig[a, b] = 0.0
+            v.ESig[a, b] = 0.0
+    # Sigma = sum_{i != j} w_i (X_i - I) + (sum_i w_i - 1) I, X_i = B_i^T B_i, B_i = F_i C,
+    # and ESig, a componentwise bound on its rounding
+    for i in range(N):
+        if i == j or not w[i] > 0.0:
+            continue
+        matmul(F[i], C, v.B)
+        _absmul(F[i], v.aC, v.Eb)  # |F_i| |C| bounds the rounding of B_i / (n eps)
+        for a in range(n):
+            for b in range(a, n):
+                x, e = 0.0, 0.0
+                for r in range(n):
+                    x += v.B[r, a] * v.B[r, b]
+                    e += abs(v.B[r, a]) * v.Eb[r, b] + abs(v.B[r, b]) * v.Eb[r, a]
+                if a == b:
+                    x -= 1.0
+                    e += 1.0
+                sx = w[i] * x
+                ex = w[i] * ((2 * n + 2) * eps * e + (N + 2) * eps * abs(x))
+                v.Sig[a, b] += sx
+                v.ESig[a, b] += ex
+                if a != b:
+                    v.Sig[b, a] += sx
+                    v.ESig[b, a] += ex
+    s1 = _sum_minus_one(w)
+    for a in range(n):
+        v.Sig[a, a] += s1
+        v.ESig[a, a] += 2.0 * eps * abs(s1) + N * N * eps * eps
+    if not _sigma_cholesky(v):
+        return np.inf, np.inf
+    lower_inverse(v.L, v.Li)
+    gram(v.Li, v.Minv)  # M^-1 = L^-T L^-1, for the bounds
+    if trace:
+        D, err = _trace_difference(F[j], C, w[j], v)
+        matmul_t(v.Minv, C, v.U)  # M^-1 C^T: F_i P = B_i U
+        matmul(C, v.U, v.U2)      # P
+    else:
+        D, err = _logdet_difference(F[j], w[j], v)
+        copy(v.U, v.Li.T)         # L^-T: Y_i P Y_i = (F_i^T B_i U)(...)^T
+        matmul_t(v.Li, C, v.U2)   # L^-1 C^T: Y_i P = F_i^T B_i U U2
+    # node j: C C^T = S_j + dS_j, |dS_j| <= (n + 3) eps |C| |C|^T (Cholesky, and forming S_j)
+    err += _inner_abs_cct(C, v.G) * ((n + 3) * eps + eta[j]) + (n + 3) * 5e-324 * _sum_abs(v.G)
+    for i in range(N):  # node i: the same for C_i, and F_i = C_i^-1 (I + R_i),
+        if i == j or not w[i] > 0.0:  # |R_i| <= n eps |C_i| |F_i| (forward substitution)
+            continue
+        scaled(covs[i], q[i], shift[i], v.S)
+        if not cholesky(v.S, v.Ci):
+            return np.inf, np.inf
+        matmul(F[i], C, v.B)
+        matmul(v.B, v.U, v.V)     # F_i P, resp. F_i C L^-T
+        _tmul(F[i], v.V, v.H)     # Y_i P, resp. F_i^T F_i C L^-T
+        matmul_t(v.H, v.H, v.K)   # dD/dP_i / w_i: Y_i P^2 Y_i, resp. Y_i P Y_i
+        matmul(v.H, v.U2, v.T)    # dD/dY_i... with R_i: Y_i P^2, resp. Y_i P
+        _absmul(v.Ci, F[i], v.Eb)
+        err += w[i] * (_inner_abs_cct(v.Ci, _abs_into(v.K)) * ((n + 3) * eps + eta[i])
+                       + 2 * n * eps * _inner_abs(v.Eb, v.T))
+    return D, 2.0 * err
+
+
+@jit
+def _trace_difference(Fj, C, wj, v: Verify):
+    """D = -tr(K M^-1 Sigma), K = C^T C, and the bound on the rounding from Sigma on (before
+    the factor 2 of `improvement`); leaves in v.G the sensitivity to node j's covariance,
+    F_j^T (w_j H - K) F_j (H = M^-1 K M^-1), enlarged by its own rounding."""
+    n = C.shape[0]
+    eps = _EPS
+    copy(v.V, v.Sig)  # Z = M^-1 Sigma by substitution with L and L^T, column by column
+    for c in range(n):
+        for a in range(n):
+            t = v.V[a, c]
+            for p in range(a):
+                t -= v.L[a, p] * v.V[p, c]
+            v.V[a, c] = t / v.L[a, a]
+        for a in range(n - 1, -1, -1):
+            t = v.V[a, c]
+            for p in range(a + 1, n):
+                t -= v.L[p, a] * v.V[p, c]
+            v.V[a, c] = t / v.L[a, a]
+    _tmul(C, C, v.K)
+    D = 0.0
+    for a in range(n):
+        for b in range(n):
+            D -= v.V[a, b] * v.K[a, b]
+    _abs_gram(C, v.G)  # |C|^T |C| bounds |K| and its rounding
+    err = (n * n + n) * eps * _inner_abs(v.V, v.G)
+    matmul(v.Minv, v.K, v.B)   # M^-1 K
+    matmul(v.B, v.Minv, v.H)   # H = M^-1 K M^-1
+    err += _inner_abs(v.ESig, v.H)
+    _abs_llt(v.L, v.T)  # the solves are exact for M + dM_c, |dM_c| <= (3n+1) eps |L||L^T|
+    _absmul(v.T, v.V, v.Eb)
+    err += (3 * n + 1) * eps * _inner_abs(v.Eb, v.B)
+    for a in range(n):
+        for b in range(n):
+            v.T[a, b] = wj * v.H[a, b] - v.K[a, b]
+            v.Eb[a, b] = wj * abs(v.H[a, b]) + v.G[a, b]
+    _sensitivity(Fj, v)
+    return D, err
+
+
+@jit
+def _logdet_difference(Fj, wj, v: Verify):
+    """D = -log det(I + Sigma) = -sum_k log1p(d_k) from the Cholesky factor of I + Sigma
+    with its pivots 1 + d_k, and the bound on the rounding from Sigma on; leaves in v.G the
+    sensitivity to node j's covariance, F_j^T (w_j M^-1 - I) F_j."""
+    n = Fj.shape[0]
+    eps = _EPS
+    D, logs = 0.0, 0.0
+    for k in range(n):
+        t = np.log1p(v.d[k])
+        D -= t
+        logs += abs(t)
+    err = _inner_abs(v.ESig, v.Minv) + (n + 2) * eps * (_inner_abs(v.T, v.Minv) + logs)
+    for a in range(n):
+        for b in range(n):
+            v.T[a, b] = wj * v.Minv[a, b] - (1.0 if a == b else 0.0)
+            v.Eb[a, b] = wj * abs(v.Minv[a, b]) + (1.0 if a == b else 0.0)
+    _sensitivity(Fj, v)
+    return D, err
+
+
+@jit
+def _sensitivity(Fj, v: Verify):
+    """v.G = |F_j^T T F_j| + (2n + 2) eps |F_j|^T Eb |F_j| for T = v.T, Eb = v.Eb."""
+    n = Fj.shape[0]
+    matmul(v.T, Fj, v.K)
+    _tmul(Fj, v.K, v.G)
+    _absmul(v.Eb, Fj, v.V)
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for p in range(n):
+                t += abs(Fj[p, a]) * v.V[p, b]
+            v.G[a, b] = abs(v.G[a, b]) + (2 * n + 2) * _EPS * t
+
+
+@jit
+def _sigma_cholesky(v: Verify) -> bool:
+    """Cholesky factor v.L of M = I + Sigma with pivots L_kk^2 = 1 + d_k, d_k kept apart
+    (v.d), so that log det M = sum log1p(d_k) keeps the digits of a small Sigma; v.T bounds
+    its backward error: L' L'^T = M + dM, L' = L with the diagonal sqrt(1 + d_k) exactly,
+    |dM| <= (n + 2) eps T. False if M is not positive definite."""
+    n = v.L.shape[0]
+    L, T, S = v.L, v.T, v.Sig
+    for k in range(n):
+        d, t = S[k, k], abs(S[k, k])
+        for p in range(k):
+            d -= L[k, p] * L[k, p]
+            t += L[k, p] * L[k, p]
+        if not 1.0 + d > 0.0 or not np.isfinite(d):
+            return False
+        v.d[k] = d
+        lkk = np.sqrt(1.0 + d)
+        L[k, k] = lkk
+        T[k, k] = t
+        for i in range(k):
+            L[i, k] = 0.0
+        for i in range(k + 1, n):
+            s, t = S[i, k], abs(S[i, k])
+            for p in range(k):
+                s -= L[i, p] * L[k, p]
+                t += abs(L[i, p] * L[k, p])
+            L[i, k] = s / lkk
+            T[i, k] = T[k, i] = t + abs(L[i, k]) * lkk
+    return True
+
+
+@jit
+def _sum_minus_one(w) -> float:
+    """sum_i w_i - 1, compensated (Neumaier): the weights sum to 1 within a few ulps, and
+    that difference enters D as it is."""
+    s, c = -1.0, 0.0
+    for i in range(w.size):
+        t = s + w[i]
+        if abs(s) >= abs(w[i]):
+            c += (s - t) + w[i]
+        else:
+            c += (w[i] - t) + s
+        s = t
+    return s + c
+
+
+@jit
+def _absmul(A, B, out):
+    """out = |A| |B|."""
+    for a in range(A.shape[0]):
+        for b in range(B.shape[1]):
+            t = 0.0
+            for p in range(A.shape[1]):
+                t += abs(A[a, p]) * abs(B[p, b])
+            out[a, b] = t
+
+
+@jit
+def _abs_gram(A, out):
+    """out = |A|^T |A|."""
+    n = A.shape[1]
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for p in range(A.shape[0]):
+                t += abs(A[p, a]) * abs(A[p, b])
+            out[a, b] = t
+
+
+@jit
+def _abs_llt(L, out):
+    """out = |L| |L|^T."""
+    n = L.shape[0]
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for p in range(n):
+                t += abs(L[a, p]) * abs(L[b, p])
+            out[a, b] = t
+
+
+@jit
+def _tmul(A, B, out):
+    """out = A^T B."""
+    for a in range(A.shape[1]):
+        for b in range(B.shape[1]):
+            t = 0.0
+            for p in range(A.shape[0]):
+                t += A[p, a] * B[p, b]
+            out[a, b] = t
+
+
+@jit
+def _inner_abs(A, B) -> float:
+    """sum_ab |A_ab| |B_ab|."""
+    t = 0.0
+    for a in range(A.shape[0]):
+        for b in range(A.shape[1]):
+            t += abs(A[a, b]) * abs(B[a, b])
+    return t
+
+
+@jit
+def _inner_abs_cct(C, G) -> float:
+    """sum_ab (|C| |C|^T)_ab G_ab."""
+    n = C.shape[0]
+    t = 0.0
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for p in range(n):
+                s += abs(C[a, p]) * abs(C[b, p])
+            t += s * G[a, b]
+    return t
+
+
+@jit
+def _abs_into(A):
+    """A <- |A|, returned."""
+    for a in range(A.shape[0]):
+        for b in range(A.shape[1]):
+            A[a, b] = abs(A[a, b])
+    return A
+
+
+@jit
+def _sum_abs(A) -> float:
+    t = 0.0
+    for a in range(A.shape[0]):
+        for b in range(A.shape[1]):
+            t += abs(A[a, b])
+    return t
 
 
 @jit

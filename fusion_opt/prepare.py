@@ -96,15 +96,24 @@ def _check_values(means, covs, where) -> int:
 
 
 @jit
-def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
-    """F_out = C^-1 for C C^T = S = sym(P) / q * 2^-shift; vertex_out = (tr, log det) of S;
-    returns |S|_F, or 0 when S is not positive definite."""
+def scaled(P, q, shift, S) -> float:
+    """S = sym(P) / q * 2^-shift, the covariance a node is fused with (scaled units);
+    returns |S|_F^2."""
     n = P.shape[0]
     norm2 = 0.0
     for j in range(n):
         for l in range(n):
             S[j, l] = np.ldexp(0.5 * (P[j, l] + P[l, j]) / q, -shift)
             norm2 += S[j, l] * S[j, l]
+    return norm2
+
+
+@jit
+def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
+    """F_out = C^-1 for C C^T = S = sym(P) / q * 2^-shift; vertex_out = (tr, log det) of S;
+    returns |S|_F, or 0 when S is not positive definite."""
+    n = P.shape[0]
+    norm2 = scaled(P, q, shift, S)
     if not cholesky(S, C):
         return 0.0
     lower_inverse(C, F_out)

@@ -9,8 +9,9 @@ so neither loses digits when the other is near 1) and T = R^-1 V:
 
     Y(w) = R^T V diag(d) V^T R,   d_k(w) = tau_k + w (nu_k - tau_k),   P(w) = T diag(1/d) T^T,
 
-    trace:   f = sum_k c_k / d_k   (c_k = |T_k|^2),   f' = -sum c_k a_k / d_k^2,  f'' = 2 sum c_k a_k^2 / d_k^3
-    logdet:  f = -sum_k log d_k + const,              f' = -sum a_k / d_k,        f'' = sum a_k^2 / d_k^2
+    trace:   f = sum_k c_k / d_k  (c_k = |T_k|^2),  f' = -sum c_k a_k / d_k^2,
+             f'' = 2 sum c_k a_k^2 / d_k^3
+    logdet:  f = -sum_k log d_k + const,  f' = -sum a_k / d_k,  f'' = sum a_k^2 / d_k^2
 
 (a_k = nu_k - tau_k). f is convex on [0, 1]. The search starts at the best point of a
 ladder geometric towards both ends (where the poles of f lie), whose neighbours bracket the
