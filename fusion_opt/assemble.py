@@ -50,10 +50,11 @@ node's input unchanged. Two tests, the second only for the nodes the first canno
    The bound, doubled, is checked against exact arithmetic at the optimum and at points
    near every vertex, over every kind of tests/test_campaign.py (worst |D - D_exact| /
    bound about 0.1). Verified means D + bound < 0. Issue 9's batch problems 46723 and
-   57613 (improvements 4.8e-6 and 5.9e-7 in log det) get bounds of 3.5e-10 and 6.7e-11,
-   near-identical nodes at condition 1e12 (trace improvements down to 5e-12 of f) about
-   1e-14 of f. What remains unverified is an improvement below the worst case of the
-   input's own rounding (first order in eps), which no double-precision result can claim.
+   57613 (improvements 4.8e-6 and 5.9e-7 in log det) get bounds of 1.3e-11 and 2.2e-11;
+   near-identical nodes at condition 1e12 (trace improvements down to 3.5e-13 of f) 1e-14
+   of f (3e-13 at most). What remains unverified is an improvement below the worst case of
+   the input's own rounding (first order in eps), which no double-precision result can
+   claim.
 """
 
 from __future__ import annotations
@@ -61,18 +62,17 @@ from __future__ import annotations
 import numpy as np
 
 from .factored import (
-    evaluate,
-    factor_at,
+    evaluate_at,
     gap,
-    gradient,
+    gradient_at,
     improvement,
-    objective,
     objective_error,
+    value,
     verify_work,
     vertex_error,
     work,
 )
-from .linalg import apply_qt, copy, fill, jit, matmul_t
+from .linalg import SMALL, apply_qt, copy, fill, jit, matmul_t, pow2, small_mul_t
 
 _LN2 = np.log(2.0)
 _EPS = np.finfo(np.float64).eps
@@ -87,26 +87,37 @@ def assemble(F, means, covs, q, E, k, vertex, pnorm, W, trace: bool, mean, cov, 
     finite (it overflows float64 in the original units)."""
     B, N, n = means.shape
     ws = work(N, n)
+    At, Vt, R, Ri, P, Bm, X, g, eta = ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.g, ws.z
     col = 0 if trace else 1
     finite = True
     for b in range(B):
         j = _vertex_or_interior(F[b], W[b], vertex[b, :, col], pnorm[b], covs[b], q[b], E[b],
-                                k[b], ws, trace)
+                                k[b], At, Vt, R, Ri, P, Bm, X, eta, trace)
         if j >= 0:
             fill(W[b], 0.0)
             W[b, j] = 1.0
-            _vertex(F[b], means[b, j], covs[b, j], q[b, j], E[b, j], k[b], vertex[b, j],
-                    W[b], ws, trace, mean[b], cov[b], stats[b])
+            _vertex(F[b], means[b, j], covs[b, j], q[b, j], E[b, j], k[b], vertex[b, j], W[b],
+                    At, Vt, R, Ri, P, Bm, g, trace, mean[b], cov[b], stats[b])
         else:
-            _interior(F[b], means[b], k[b], W[b], ws, trace, mean[b], cov[b], stats[b])
-        finite &= np.isfinite(stats[b, 0]) and np.isfinite(cov[b]).all() and \
-            np.isfinite(mean[b]).all()
+            _interior(F[b], means[b], k[b], W[b], Vt, R, Ri, P, Bm, g, ws.rhs, trace, mean[b],
+                      cov[b], stats[b])
+        finite &= np.isfinite(stats[b, 0]) and _finite(cov[b]) and _finite(mean[b])
     return finite
 
 
 @jit
-def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, ws, trace: bool) -> int:
-    """The node whose input is the result (best-vertex rule), or -1 for a fused one."""
+def _finite(a) -> bool:
+    for x in a.flat:
+        if not np.isfinite(x):
+            return False
+    return True
+
+
+@jit
+def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X, eta,
+                        trace: bool) -> int:
+    """The node whose input is the result (best-vertex rule), or -1 for a fused one, when
+    the buffers are left factored at w. eta (N,) receives the scales' errors."""
     N, n = F.shape[0], F.shape[1]
     support, single = 0, -1
     for i in range(N):
@@ -116,15 +127,15 @@ def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, ws, trace: bool) -> int:
     if support == 1:
         return single
     best = int(np.argmin(fv))
-    f, ok = evaluate(F, w, ws, trace)
+    f, ok = evaluate_at(F, w, At, Vt, R, Ri, trace)
     if not ok:
         return best
-    eta, eta_max = ws.z, 0.0
+    eta_max = 0.0
     for i in range(N):
         eta[i] = _scale_error(q[i], E[i], N)
         if w[i] > 0.0:
             eta_max = max(eta_max, eta[i])
-    err = objective_error(F, w, ws, pnorm, f, trace)
+    err = objective_error(F, w, R, Ri, P, B, X, pnorm, f, trace)
     high = f * (1.0 + err + eta_max) if trace else f + err + n * eta_max
     for i in range(N):  # every node the first test cannot rule out, by the second
         err_v = vertex_error(F[i], pnorm[i], trace)
@@ -153,17 +164,20 @@ def _improves_on(F, w, j, covs, q, E, k, eta, trace: bool) -> bool:
 
 
 @jit
-def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, ws, trace, mean, cov, stats):
+def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, At, Vt, R, Ri, P, B, g, trace, mean, cov,
+            stats):
     """Node j's own estimate (mean, its modified covariance as given) and the certificate
     at e_j."""
     n = m_j.size
     copy(mean, m_j)
+    factor = pow2(-E_j)
     for r in range(n):
         for c in range(n):
-            cov[r, c] = np.ldexp(0.5 * (P_j[r, c] + P_j[c, r]) / q_j, -E_j)
-    f, _ = evaluate(F, w, ws, trace)
-    gradient(F, ws, trace)
-    gp = gap(ws.g, w)
+            x = 0.5 * (P_j[r, c] + P_j[c, r]) / q_j
+            cov[r, c] = x * factor if factor > 0.0 else np.ldexp(x, -E_j)
+    evaluate_at(F, w, At, Vt, R, Ri, trace)
+    gradient_at(F, Ri, P, B, g, trace)
+    gp = gap(g, w)
     if trace:
         stats[0] = np.trace(cov)
         stats[1], stats[2] = np.ldexp(gp, k), gp / abs(vertex_j[0])
@@ -173,9 +187,9 @@ def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, ws, trace, mean, cov, stats):
 
 
 @jit
-def _interior(F, means, k, w, ws, trace, mean, cov, stats):
+def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats):
+    """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`)."""
     n = F.shape[1]
-    rows, _ = factor_at(F, w, ws)
     r = 0
     for i in range(w.size):  # [sqrt(w_i) F_i m_i] in the row order of A
         if w[i] > 0.0:
@@ -184,21 +198,26 @@ def _interior(F, means, k, w, ws, trace, mean, cov, stats):
                 t = 0.0
                 for c in range(a + 1):
                     t += F[i, a, c] * means[i, c]
-                ws.rhs[r + a] = root * t
+                rhs[r + a] = root * t
             r += n
-    apply_qt(ws.Vt, n, rows, ws.rhs)
+    apply_qt(Vt, n, r, rhs)
     for a in range(n):  # mean = R^-1 (Q^T b)[:n]
         t = 0.0
         for c in range(a, n):
-            t += ws.Ri[a, c] * ws.rhs[c]
+            t += Ri[a, c] * rhs[c]
         mean[a] = t
-    matmul_t(ws.Ri, ws.Ri, ws.P)
+    if n <= SMALL:
+        small_mul_t(Ri, Ri, P)
+    else:
+        matmul_t(Ri, Ri, P)
+    factor = pow2(k)
     for a in range(n):
         for c in range(n):
-            cov[a, c] = np.ldexp(0.5 * (ws.P[a, c] + ws.P[c, a]), k)
-    f = objective(ws, trace)
-    gradient(F, ws, trace)
-    gp = gap(ws.g, w)
+            x = 0.5 * (P[a, c] + P[c, a])
+            cov[a, c] = x * factor if factor > 0.0 else np.ldexp(x, k)
+    f = value(R, Ri, trace)
+    gradient_at(F, Ri, P, B, g, trace)
+    gp = gap(g, w)
     if trace:
         stats[0], stats[1], stats[2] = np.ldexp(f, k), np.ldexp(gp, k), gp / abs(f)
     else:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import cholesky, jit, lower_inverse
+from .linalg import cholesky, jit, lower_inverse, pow2
 
 SYMMETRY_RTOL = 1e-8
 MAX_SPREAD_BITS = 1900
@@ -101,9 +101,11 @@ def scaled(P, q, shift, S) -> float:
     returns |S|_F^2."""
     n = P.shape[0]
     norm2 = 0.0
+    factor = pow2(-shift)
     for j in range(n):
         for l in range(n):
-            S[j, l] = np.ldexp(0.5 * (P[j, l] + P[l, j]) / q, -shift)
+            x = 0.5 * (P[j, l] + P[l, j]) / q
+            S[j, l] = x * factor if factor > 0.0 else np.ldexp(x, -shift)
             norm2 += S[j, l] * S[j, l]
     return norm2
 

@@ -74,7 +74,7 @@ def test_the_whitened_difference_is_within_its_bound_of_exact_arithmetic(criteri
 @pytest.mark.parametrize("criterion", CRITERIA)
 def test_near_identical_nodes_at_condition_1e12_come_back_optimal(criterion):
     """Nodes that differ by 1e-6 of a base of condition 1e12: the optimum beats the best
-    node by as little as 1e-12 of f, below the first test's bound (about 2e-10 of f), so
+    node by as little as 4e-13 of f, below the first test's bound (about 2e-10 of f), so
     125 of 3000 "trace" problems of (n, N) = (4, 3) came back as a single node. Now every
     one is optimal, and every fused one beats every node in exact arithmetic."""
     trace = criterion == "trace"

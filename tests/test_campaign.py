@@ -325,7 +325,7 @@ def test_the_best_vertex_rule_verifies_small_improvements_at_condition_3e8():
     beats the best node by 4.8e-6 and 5.9e-7 in log det, which the first test of
     assemble.py cannot verify (its bound, c n eps times the condition 3e8 of the best node,
     is 2 x 2.5e-6 and 2 x 1.0e-6) and the difference in the node's whitened coordinates
-    does (bounds 3.5e-10 and 6.7e-11); exact arithmetic confirms the improvement."""
+    does (bounds 1.3e-11 and 2.2e-11); exact arithmetic confirms the improvement."""
     means, covs = _batch(4, 3, "ill-conditioned")
     index = [46723, 57613]
     r = fo.fuse_batch(means[index], covs[index], "bci", "logdet")

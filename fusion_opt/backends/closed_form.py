@@ -40,43 +40,50 @@ _TOL = 1e-15
 def pair_weight(F, trace: bool, ws):
     """The optimal weight w of node 0 (node 1 takes 1 - w) for factors F (2, n, n), and
     the iteration count; ws a `factored.Work` of this size."""
-    a, b, c = diagonalise(F, trace, ws)
-    return solve_weight(a, b, c, trace)
+    return pair_weight_at(F, trace, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S, ws.U,
+                          ws.lam, ws.abc)
 
 
 @jit
-def diagonalise(F, trace: bool, ws):
-    """a, b, c (n,) of the module docstring: d_k(w) = b_k + w a_k and the trace weights."""
+def pair_weight_at(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
+    """`pair_weight` with the buffers of `factored.Work` as arrays (factored.py's
+    docstring says why)."""
+    diagonalise(F, trace, At, Vt, R, Ri, P, B, X, S, U, lam, abc)
+    return solve_weight(abc, trace)
+
+
+@jit
+def diagonalise(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
+    """abc (3, n) = a, b, c of the module docstring: d_k(w) = b_k + w a_k and the trace
+    weights; the other arrays are scratch (At (n, >= 2n), n x n, lam (n,))."""
     n = F.shape[1]
-    At = ws.At  # [F_a; F_b]^T in its first 2n columns
-    for a in range(n):
+    for a in range(n):  # [F_a; F_b]^T in the first 2n columns of At
         for b in range(n):
             At[b, a], At[b, n + a] = F[0, a, b], F[1, a, b]
-    householder(At, n, 2 * n, ws.Vt, ws.R)
-    thin_qt(ws.Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
+    householder(At, n, 2 * n, Vt, R)
+    thin_qt(Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
     for a in range(n):  # S = Q_a^T Q_a
         for b in range(a, n):
             t = 0.0
             for r in range(n):
                 t += At[a, r] * At[b, r]
-            ws.S[a, b] = ws.S[b, a] = t
-    eigh(ws.S, ws.lam, ws.U)
+            S[a, b] = S[b, a] = t
+    eigh(S, lam, U)
     for r in range(n):  # B = Q_a V, X = Q_b V
         for k in range(n):
             ta = tb = 0.0
             for a in range(n):
-                ta += At[a, r] * ws.U[a, k]
-                tb += At[a, n + r] * ws.U[a, k]
-            ws.B[r, k], ws.X[r, k] = ta, tb
-    nu, tau, c = np.empty(n), np.empty(n), np.ones(n)
+                ta += At[a, r] * U[a, k]
+                tb += At[a, n + r] * U[a, k]
+            B[r, k], X[r, k] = ta, tb
     for k in range(n):
-        nu[k], tau[k] = _column_sumsq(ws.B, k), _column_sumsq(ws.X, k)
+        nu, tau = _column_sumsq(B, k), _column_sumsq(X, k)
+        abc[0, k], abc[1, k], abc[2, k] = nu - tau, tau, 1.0
     if trace:
-        upper_inverse(ws.R, ws.Ri)
-        matmul(ws.Ri, ws.U, ws.P)  # T = R^-1 V
+        upper_inverse(R, Ri)
+        matmul(Ri, U, P)  # T = R^-1 V
         for k in range(n):
-            c[k] = _column_sumsq(ws.P, k)
-    return nu - tau, tau, c
+            abc[2, k] = _column_sumsq(P, k)
 
 
 @jit
@@ -88,27 +95,28 @@ def _column_sumsq(X, k) -> float:
 
 
 @jit
-def _derivatives(w, a, b, c, trace: bool):
+def _derivatives(w, abc, trace: bool):
     """f, f' and the damped curvature of the module docstring at w."""
     f = fp = fpp = 0.0
-    for k in range(a.size):
-        d = b[k] + w * a[k]
-        r = a[k] / d
-        q = c[k] / d if trace else 1.0
+    n = abc.shape[1]
+    for k in range(n):
+        d = abc[1, k] + w * abc[0, k]
+        r = abc[0, k] / d
+        q = abc[2, k] / d if trace else 1.0
         f += q if trace else -np.log(d)
         fp -= q * r
         fpp += q * r * r
     if trace:
         return f, fp, 2.0 * fpp - (1.0 - _RHO2) * 2.0 / f * fp * fp
-    return f, fp, fpp - (1.0 - _RHO2) / a.size * fp * fp
+    return f, fp, fpp - (1.0 - _RHO2) / n * fp * fp
 
 
 @jit
-def solve_weight(a, b, c, trace: bool):
+def solve_weight(abc, trace: bool):
     """argmin over w in [0, 1] of the 1-D problem; (w, iterations)."""
     k_best, f_best = 0, np.inf
     for k in range(_LADDER.size):
-        f = _derivatives(_LADDER[k], a, b, c, trace)[0]
+        f = _derivatives(_LADDER[k], abc, trace)[0]
         if f < f_best:
             k_best, f_best = k, f
     w = _LADDER[k_best]
@@ -116,7 +124,7 @@ def solve_weight(a, b, c, trace: bool):
     hi = _LADDER[min(k_best + 1, _LADDER.size - 1)]
     it = 0
     for it in range(1, _MAX_ITER + 1):  # noqa: B007 (the count is reported)
-        f, fp, curv = _derivatives(w, a, b, c, trace)
+        f, fp, curv = _derivatives(w, abc, trace)
         if fp < 0.0:
             lo = w
         elif fp > 0.0:

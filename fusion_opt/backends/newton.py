@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from ..factored import evaluate, gap, gradient, model, work
+from ..factored import evaluate_at, gap, gradient_at, model_at, work
 from ..linalg import apply_qt, copy, fill, householder, jit
 from . import closed_form
 
@@ -55,21 +55,25 @@ def solve(F, trace: bool, W0, use_start: bool, W, rel, iters):
     weights."""
     B, N, n = F.shape[0], F.shape[1], F.shape[2]
     ws = work(N, n)
+    At, Vt, R, Ri, P, Bm, X, S = ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S
     for b in range(B):
         iters[b] = 0
         if N == 1:
             W[b, 0], rel[b] = 1.0, 0.0
             continue
         if N == 2:
-            w, iters[b] = closed_form.pair_weight(F[b], trace, ws)
+            w, iters[b] = closed_form.pair_weight_at(F[b], trace, At, Vt, R, Ri, P, Bm, X, S,
+                                                     ws.U, ws.lam, ws.abc)
             W[b, 0], W[b, 1] = w, 1.0 - w
-            rel[b] = certificate(F[b], W[b], ws, trace)[2]
+            rel[b] = _certificate(F[b], W[b], trace, At, Vt, R, Ri, P, Bm, ws.g)[2]
         else:
             if use_start:
                 copy(W[b], W0[b])
             else:
                 fill(W[b], 1.0 / N)
-            rel[b], iters[b] = sqp(F[b], trace, W[b], ws, TOL, 50 + 4 * N)
+            rel[b], iters[b] = _sqp(F[b], trace, W[b], TOL, 50 + 4 * N, At, Vt, R, Ri, P, Bm, X,
+                                    S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
+                                    ws.Elt, ws.Vlt, ws.Rls, ws.w_try, ws.best_w)
 
 
 @jit
@@ -77,17 +81,23 @@ def certificates(F, W, trace: bool, rel):
     """rel (B,): the relative certificate of weights W (B, N) for factors F (B, N, n, n)."""
     ws = work(F.shape[1], F.shape[2])
     for b in range(F.shape[0]):
-        rel[b] = certificate(F[b], W[b], ws, trace)[2]
+        rel[b] = _certificate(F[b], W[b], trace, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
+                              ws.g)[2]
 
 
 @jit
 def certificate(F, w, ws, trace: bool):
     """(gap, f, gap relative to |f| for "trace", as is for "logdet") at weights w."""
-    f, ok = evaluate(F, w, ws, trace)
+    return _certificate(F, w, trace, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g)
+
+
+@jit
+def _certificate(F, w, trace: bool, At, Vt, R, Ri, P, B, g):
+    f, ok = evaluate_at(F, w, At, Vt, R, Ri, trace)
     if not ok:
         return np.inf, np.inf, np.inf
-    gradient(F, ws, trace)
-    gp = gap(ws.g, w)
+    gradient_at(F, Ri, P, B, g, trace)
+    gp = gap(g, w)
     return gp, f, gp / abs(f) if trace else gp
 
 
@@ -96,14 +106,22 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
     """One problem (module docstring): F (N, n, n), w (N,) a start on the simplex with Y(w)
     positive definite, overwritten with the iterate of the best certificate. Returns that
     certificate (relative, of the model's gradient) and the iteration count."""
+    return _sqp(F, trace, w, tol, max_iter, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X,
+                ws.S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols, ws.Elt,
+                ws.Vlt, ws.Rls, ws.w_try, ws.best_w)
+
+
+@jit
+def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, S, zeta,
+         g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, w_try, best_w):
+    """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why)."""
     N = F.shape[0]
-    f, _ = evaluate(F, w, ws, trace)
-    best_w = ws.best_w
+    f, _ = evaluate_at(F, w, At, Vt, R, Ri, trace)
     copy(best_w, w)
     best, rel, it, stalled = np.inf, np.inf, 0, 0
     while True:
-        model(F, ws, trace, 1.0 if rel <= _LOCAL else _RHO)
-        rel = gap(ws.g, w) / (abs(f) if trace else 1.0)
+        model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0 if rel <= _LOCAL else _RHO)
+        rel = gap(g, w) / (abs(f) if trace else 1.0)
         if rel < best:
             best, stalled = rel, 0
             copy(best_w, w)
@@ -113,33 +131,33 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
             break
         it += 1
         for i in range(N):
-            ws.mask[i] = w[i] > 0.0
-        nearest(ws)
-        f = _step_towards(F, trace, w, ws, f)
-        if rel <= _LOCAL and not _equal(w, ws.x):
-            f = _whole_step_if_better(F, trace, w, ws, f)
+            mask[i] = w[i] > 0.0
+        _nearest(Et, x, mask, z, r, cols, Elt, Vlt, Rls)
+        f = _step_towards(F, trace, w, x, g, w_try, At, Vt, R, Ri, f)
+        if rel <= _LOCAL and not _equal(w, x):
+            f = _whole_step_if_better(F, trace, w, x, g, At, Vt, R, Ri, P, Bm, f)
     copy(w, best_w)
     return best, it
 
 
 @jit
-def _whole_step_if_better(F, trace: bool, w, ws, f) -> float:
+def _whole_step_if_better(F, trace: bool, w, x, g, At, Vt, R, Ri, P, B, f) -> float:
     """Near the optimum the decrease of f along a Newton step (about the certificate
     squared) can fall below the rounding of f (eps times the condition of the stacked
     factors: 1e-12 of f at condition 1e10); the line search then rejects or shortens the
     step at random and the SQP stalls above its tolerance. So when it did not take the
-    whole step to ws.x, the certificates decide, which stay accurate there: x replaces the
-    line search's point w if its certificate is better. ws is left factored at the point
-    whose f is returned."""
-    gradient(F, ws, trace)  # ws holds w's factors (_step_towards)
-    rel_w = gap(ws.g, w) / (abs(f) if trace else 1.0)
-    f_x, ok = evaluate(F, ws.x, ws, trace)
+    whole step to x, the certificates decide, which stay accurate there: x replaces the
+    line search's point w if its certificate is better. The buffers are left factored at
+    the point whose f is returned."""
+    gradient_at(F, Ri, P, B, g, trace)  # the buffers hold w's factors (_step_towards)
+    rel_w = gap(g, w) / (abs(f) if trace else 1.0)
+    f_x, ok = evaluate_at(F, x, At, Vt, R, Ri, trace)
     if ok:
-        gradient(F, ws, trace)
-        if gap(ws.g, ws.x) / (abs(f_x) if trace else 1.0) < rel_w:
-            copy(w, ws.x)
+        gradient_at(F, Ri, P, B, g, trace)
+        if gap(g, x) / (abs(f_x) if trace else 1.0) < rel_w:
+            copy(w, x)
             return f_x
-    evaluate(F, w, ws, trace)
+    evaluate_at(F, w, At, Vt, R, Ri, trace)
     return f
 
 
@@ -152,51 +170,58 @@ def _equal(a, b) -> bool:
 
 
 @jit
-def _step_towards(F, trace: bool, w, ws, f) -> float:
-    """Armijo backtracking from the nearest point ws.x towards w, allowing the rounding of
-    f; w is overwritten with the accepted point, whose f is returned and whose factors
-    are left in ws (unchanged w and f if no step is accepted)."""
+def _step_towards(F, trace: bool, w, x, g, w_try, At, Vt, R, Ri, f) -> float:
+    """Armijo backtracking from the nearest point x towards w, allowing the rounding of f;
+    w is overwritten with the accepted point, whose f is returned and whose factors are
+    left in the buffers (unchanged w and f if no step is accepted)."""
     N = w.size
     slope = 0.0
     for i in range(N):
-        slope += ws.g[i] * (ws.x[i] - w[i])
+        slope += g[i] * (x[i] - w[i])
     slope = min(slope, 0.0)
     allowance = _FLAT * (abs(f) if trace else max(abs(f), 1.0))
     t = 1.0
     for _ in range(60):
         for i in range(N):
-            ws.w_try[i] = ws.x[i] if t == 1.0 else w[i] + t * (ws.x[i] - w[i])
-        f_try, ok = evaluate(F, ws.w_try, ws, trace)
+            w_try[i] = x[i] if t == 1.0 else w[i] + t * (x[i] - w[i])
+        f_try, ok = evaluate_at(F, w_try, At, Vt, R, Ri, trace)
         if ok and f_try <= f + _ARMIJO * t * slope + allowance:
-            copy(w, ws.w_try)
+            copy(w, w_try)
             return f_try
         t *= 0.5
-    evaluate(F, w, ws, trace)  # leave w's factors in ws
+    evaluate_at(F, w, At, Vt, R, Ri, trace)  # leave w's factors in the buffers
     return f
 
 
 @jit
 def nearest(ws):
-    """ws.x (N,) on the simplex minimising |sum x_i d_i| for the rows (d_i, 1) of ws.Et
+    """`_nearest` on the buffers of ws."""
+    _nearest(ws.Et, ws.x, ws.mask, ws.z, ws.r, ws.cols, ws.Elt, ws.Vlt, ws.Rls)
+
+
+@jit
+def _nearest(Et, x, P, z, r, cols, Elt, Vlt, Rls):
+    """x (N,) on the simplex minimising |sum x_i d_i| for the rows (d_i, 1) of Et
     (N, m + 1): Lawson-Hanson NNLS of min |E u - e|, e = (0, ..., 0, 1), x = u / sum u,
-    started on the nodes ws.mask when the least-squares solution there is positive."""
-    Et, x, P = ws.Et, ws.x, ws.mask
+    started on the nodes P (a mask) when the least-squares solution there is positive.
+    z, r, cols, Elt, Vlt, Rls are its scratch (`factored.Work`)."""
     N, M = Et.shape
     _normalise(Et)
     fill(x, 0.0)
     k = P.sum()
-    if 0 < k <= ws.Elt.shape[0] and _least_squares(ws) and _positive_on(ws.z, P):
-        copy(x, ws.z)
+    if 0 < k <= Elt.shape[0] and _least_squares(Et, P, z, r, cols, Elt, Vlt, Rls) and \
+            _positive_on(z, P):
+        copy(x, z)
     else:
         fill(P, False)
     norm = np.sqrt(_sumsq2(Et) / N)
     tol = 10.0 * max(M, N) * _EPS * max(norm, 1.0)
     for _ in range(3 * N + 10):
-        j = _entering(ws, tol)
+        j = _entering(Et, x, r, P, tol)
         if j < 0:
             break
         P[j] = True
-        if not _inner(ws, j):
+        if not _inner(j, Et, x, P, z, r, cols, Elt, Vlt, Rls):
             break
     total = x.sum()
     if not total > 0.0:  # cannot happen for a nonzero e; a guard against rounding
@@ -221,16 +246,17 @@ def _normalise(Et):
             s += Et[i, p] * Et[i, p]
     if not 0.0 < s < np.inf:
         return
-    shift = -math.frexp(np.sqrt(s / N))[1]
+    # 2^shift is a normal number (|shift| <= 540 for a finite s > 0), so multiplying by it
+    # rounds exactly as ldexp would, without a library call per entry
+    scale = np.ldexp(1.0, -math.frexp(np.sqrt(s / N))[1])
     for i in range(N):
         for p in range(M - 1):
-            Et[i, p] = np.ldexp(Et[i, p], shift)
+            Et[i, p] *= scale
 
 
 @jit
-def _entering(ws, tol: float) -> int:
-    """The node off P of the largest dual E^T (e - E x) above tol, or -1."""
-    Et, x, r = ws.Et, ws.x, ws.r
+def _entering(Et, x, r, P, tol: float) -> int:
+    """The node off P of the largest dual E^T (e - E x) above tol, or -1 (r: scratch)."""
     N, M = Et.shape
     fill(r, 0.0)
     r[M - 1] = 1.0
@@ -240,7 +266,7 @@ def _entering(ws, tol: float) -> int:
                 r[p] -= x[i] * Et[i, p]
     j, top = -1, tol
     for i in range(N):
-        if not ws.mask[i]:
+        if not P[i]:
             t = 0.0
             for p in range(M):
                 t += Et[i, p] * r[p]
@@ -250,13 +276,12 @@ def _entering(ws, tol: float) -> int:
 
 
 @jit
-def _inner(ws, j) -> bool:
+def _inner(j, Et, x, P, z, r, cols, Elt, Vlt, Rls) -> bool:
     """Lawson-Hanson's inner loop after node j entered P; False if j cannot enter
     (rounding), which ends the outer loop."""
-    x, z, P = ws.x, ws.z, ws.mask
     N = x.size
     for _ in range(3 * N + 10):
-        good = _least_squares(ws)
+        good = _least_squares(Et, P, z, r, cols, Elt, Vlt, Rls)
         if not good or (z[j] <= 0.0 and x[j] == 0.0):
             P[j] = False
             return False
@@ -277,39 +302,37 @@ def _inner(ws, j) -> bool:
 
 
 @jit
-def _least_squares(ws) -> bool:
-    """ws.z (N,), zero off P = ws.mask, minimising |E_P z_P - e|; False when E_P has more
-    columns than the buffers hold or is numerically rank deficient."""
-    Et, P, z = ws.Et, ws.mask, ws.z
+def _least_squares(Et, P, z, r, cols, Elt, Vlt, Rls) -> bool:
+    """z (N,), zero off P, minimising |E_P z_P - e|; False when E_P has more columns than
+    the buffers hold or is numerically rank deficient."""
     N, M = Et.shape
     k = 0
     for i in range(N):
         z[i] = 0.0
         if P[i]:
-            if k == ws.Elt.shape[0]:
+            if k == Elt.shape[0]:
                 return False
-            ws.cols[k] = i
+            cols[k] = i
             for p in range(M):
-                ws.Elt[k, p] = Et[i, p]
+                Elt[k, p] = Et[i, p]
             k += 1
-    R = ws.Rls
-    householder(ws.Elt, k, M, ws.Vlt, R)
+    householder(Elt, k, M, Vlt, Rls)
     top, low = 0.0, np.inf
     for c in range(k):
-        top, low = max(top, abs(R[c, c])), min(low, abs(R[c, c]))
+        top, low = max(top, abs(Rls[c, c])), min(low, abs(Rls[c, c]))
     if not low > 1e3 * _EPS * top:
         return False
-    rhs = ws.r  # Q^T e, then back substitution with R
+    rhs = r  # Q^T e, then back substitution with R
     fill(rhs, 0.0)
     rhs[M - 1] = 1.0
-    apply_qt(ws.Vlt, k, M, rhs)
+    apply_qt(Vlt, k, M, rhs)
     for c in range(k - 1, -1, -1):
         t = rhs[c]
         for d in range(c + 1, k):
-            t -= R[c, d] * rhs[d]
-        rhs[c] = t / R[c, c]
+            t -= Rls[c, d] * rhs[d]
+        rhs[c] = t / Rls[c, c]
     for c in range(k):
-        z[ws.cols[c]] = rhs[c]
+        z[cols[c]] = rhs[c]
     return True
 
 

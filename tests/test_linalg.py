@@ -1,0 +1,72 @@
+"""The compiled dense kernels of linalg.py against numpy, and the exactness their speed-ups
+rely on: scaling by pow2 is ldexp, and the blocked loops sum in the same order as one
+entry at a time (so the batch results stay bit for bit those of the plain loops)."""
+
+import numpy as np
+import pytest
+
+from fusion_opt import linalg
+
+
+def test_multiplying_by_pow2_is_ldexp_also_into_subnormals():
+    rng = np.random.default_rng(120)
+    x = rng.standard_normal(2000) * 10.0 ** rng.uniform(-300, 300, 2000)
+    for e in (-1100, -1074, -1060, -1022, -600, -1, 0, 1, 600, 1023, 1100):
+        factor = linalg.pow2(e)
+        if -1022 <= e <= 1023:
+            assert factor == np.ldexp(1.0, e)
+            with np.errstate(over="ignore"):
+                np.testing.assert_array_equal(x * factor, np.ldexp(x, e))
+        else:
+            assert factor == 0.0
+
+
+def _one_at_a_time(A, B):
+    """A @ B summed entry by entry in the order of k, in float64 (the unblocked loops)."""
+    C = np.zeros((A.shape[0], B.shape[1]))
+    for k in range(A.shape[1]):
+        C += A[:, k:k + 1] * B[k:k + 1, :]
+    return C
+
+
+@pytest.mark.parametrize("n,m", [(1, 1), (3, 3), (4, 4), (5, 7), (6, 6), (12, 12), (16, 9)])
+def test_small_products_sum_in_the_order_of_k(n, m):
+    rng = np.random.default_rng([121, n, m])
+    A, B = rng.standard_normal((n, m)), rng.standard_normal((m, n + 1))
+    C = np.empty((n, n + 1))
+    linalg.small_mul(A, B, C)
+    np.testing.assert_array_equal(C, _one_at_a_time(A, B))
+    Bt = np.ascontiguousarray(B.T)
+    linalg.small_mul_t(A, Bt, C)
+    np.testing.assert_array_equal(C, _one_at_a_time(A, B))
+    G = np.empty((m, m))
+    linalg.small_gram(A, G)
+    np.testing.assert_array_equal(G, _one_at_a_time(A.T, A))
+    F = rng.standard_normal((3, m, m))
+    D, E = rng.standard_normal((m, n)), np.empty((m, n))
+    linalg.node_mul(F, 2, D, E)
+    np.testing.assert_array_equal(E, _one_at_a_time(F[2], D))
+    linalg.node_tmul(F, 1, D, E)
+    np.testing.assert_array_equal(E, _one_at_a_time(F[1].T, D))
+
+
+@pytest.mark.parametrize("n,rows", [(1, 3), (2, 4), (3, 17), (4, 12), (5, 17), (6, 30),
+                                    (9, 40), (12, 96)])
+def test_householder_is_a_qr_and_blocks_like_one_column_at_a_time(n, rows):
+    rng = np.random.default_rng([122, n, rows])
+    A = rng.standard_normal((rows, n))
+    At, Vt, R = np.ascontiguousarray(A.T), np.zeros((n, rows)), np.empty((n, n))
+    linalg.householder(At, n, rows, Vt, R)
+    Q = np.eye(rows)
+    for k in range(n):
+        Q = Q @ (np.eye(rows) - 2.0 * np.outer(Vt[k], Vt[k]))
+    np.testing.assert_allclose(Q[:, :n] @ R, A, atol=1e-13 * np.abs(A).max())
+    # the same reflections column by column with numpy, in the same order of summation
+    X = np.ascontiguousarray(A.T)
+    for k in range(n):
+        for j in range(k + 1, n):
+            t = 0.0
+            for i in range(k, rows):
+                t += Vt[k, i] * X[j, i]
+            X[j, k:] -= 2.0 * t * Vt[k, k:]
+        np.testing.assert_array_equal(R[k, k + 1:], X[k + 1:, k])
