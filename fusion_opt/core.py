@@ -146,7 +146,15 @@ def arrays(means, covs, batch: bool, names: Names = _NAMES):
         raise FusionInputError(f"{names.means} and {names.covs} are empty ({zero[0]} = 0)")
     if not batch:
         means, covs = means[None], covs[None]
-    return np.ascontiguousarray(means), np.ascontiguousarray(covs)
+    return _writable(means), _writable(covs)
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    """a C-contiguous and writable: numba compiles a kernel once per array type, and a
+    read-only array (an Estimates' means, say) is another type, which would cost the whole
+    compiled path again (15 s) for the same arithmetic. The kernels never write to it."""
+    a = np.ascontiguousarray(a)
+    return a if a.flags.writeable else a.copy()
 
 
 def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
@@ -179,16 +187,21 @@ def _detection(req, B, N, batch):
     if q.shape != (N,) and not (batch and q.shape == (B, N)):
         want = f"a scalar, ({N},) or ({B}, {N})" if batch else f"a scalar or ({N},)"
         raise FusionInputError(f"p_detect and chi (or growth) must be {want}, got {q.shape}")
-    return np.broadcast_to(q, (B, N)).copy(), np.broadcast_to(E, (B, N)).copy()
+    q, E = (_read_only(np.broadcast_to(x, (B, N)).copy()) for x in (q, E))
+    return q, E
 
 
 @functools.lru_cache(maxsize=64)
 def _unit_scales(B, N):
     """q = 1, E = 0 (B, N), read-only and shared: no scaling."""
-    q, E = np.ones((B, N)), np.zeros((B, N), dtype=np.int64)
-    q.setflags(write=False)
-    E.setflags(write=False)
-    return q, E
+    return _read_only(np.ones((B, N))), _read_only(np.zeros((B, N), dtype=np.int64))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """The scales q and E always reach the kernels read-only, shared or not, so that they
+    are compiled for one array type."""
+    a.setflags(write=False)
+    return a
 
 
 class _Arrays:

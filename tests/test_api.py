@@ -108,3 +108,16 @@ def test_readme_examples_run():
         if "stonesoup" in block:
             pytest.importorskip("stonesoup")
         exec(compile(block, "README.md", "exec"), {})
+
+
+def test_one_compiled_specialisation_whatever_the_inputs_flags():
+    """Read-only inputs (an Estimates' arrays), MBCI's own scales and a batch reach the
+    compiled path as the same array types as plain calls, so it is compiled once (15 s
+    each otherwise) and a study pays the compilation once."""
+    est = fo.Estimates(MEANS, COVS)
+    fo.bci(MEANS, COVS)
+    fo.bci(est.means, est.covs, "logdet")
+    fo.mbci(est.means, est.covs, P, growth=1.1)
+    fo.fuse_batch(np.stack([est.means] * 3), np.stack([est.covs] * 3), "mbci", p_detect=P,
+                  chi=0.9)
+    assert len(core.fuse_exact.signatures) == 1, core.fuse_exact.signatures
