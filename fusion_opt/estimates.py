@@ -97,11 +97,11 @@ def _ids(ids, m: int) -> np.ndarray:
     """Integer track ids (m,), unique; arange(m) when None."""
     if ids is None:
         return np.arange(m, dtype=np.int64)
-    if np.asarray(ids).dtype.kind in "USO":
-        raise FusionInputError("ids must be integers (map other track names to integers), "
-                               "got " + ("strings" if np.asarray(ids).dtype.kind != "O"
-                                         else "objects"))
-    a = real_array(ids, "ids")
+    try:
+        a = real_array(ids, "ids")
+    except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
+        raise FusionInputError(f"ids must be integers (map other track names to integers): "
+                               f"{exc}") from None
     if a.shape != (m,):
         raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
     if np.asarray(ids).dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):

@@ -40,6 +40,7 @@ def test_empty_and_its_hint():
     (dict(means=M.astype(complex)), "means must be an array of real numbers, got complex"),
     (dict(ids=[3, 3]), r"ids must be unique within one Estimates, got \[3, 3\]"),
     (dict(ids=["a", "b"]), "ids must be integers .*got strings"),
+    (dict(ids=[[1, 2], [3]]), "ids must be integers .*array of real numbers"),
     (dict(ids=[1.5, 2.0]), "ids must be integers"),
     (dict(ids=[1]), r"ids must have shape \(2,\)"),
     (dict(time=float("nan")), "time must be a finite real number"),
