@@ -72,7 +72,8 @@ from .factored import (
     vertex_error,
     work,
 )
-from .linalg import SMALL, apply_qt, copy, fill, jit, matmul_t, pow2, small_mul_t
+from .linalg import SMALL, apply_qt, copy, fill, jit, matmul_t, small_mul_t
+from .prepare import scaled
 
 _LN2 = np.log(2.0)
 _EPS = np.finfo(np.float64).eps
@@ -170,11 +171,7 @@ def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, At, Vt, R, Ri, P, B, g, trace
     at e_j."""
     n = m_j.size
     copy(mean, m_j)
-    factor = pow2(-E_j)
-    for r in range(n):
-        for c in range(n):
-            x = 0.5 * (P_j[r, c] + P_j[c, r]) / q_j
-            cov[r, c] = x * factor if factor > 0.0 else np.ldexp(x, -E_j)
+    scaled(P_j, q_j, E_j, cov)  # sym(P_j) / s_j in the original units
     evaluate_at(F, w, At, Vt, R, Ri, trace)
     gradient_at(F, Ri, P, B, g, trace)
     gp = gap(g, w)
@@ -210,11 +207,7 @@ def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats):
         small_mul_t(Ri, Ri, P)
     else:
         matmul_t(Ri, Ri, P)
-    factor = pow2(k)
-    for a in range(n):
-        for c in range(n):
-            x = 0.5 * (P[a, c] + P[c, a])
-            cov[a, c] = x * factor if factor > 0.0 else np.ldexp(x, k)
+    scaled(P, 1.0, -k, cov)  # sym(P) 2^k: back to the original units
     f = value(R, Ri, trace)
     gradient_at(F, Ri, P, B, g, trace)
     gp = gap(g, w)

@@ -162,7 +162,7 @@ def gradient_at(F, Ri, G, B, g, trace: bool):
             node_mul(F, i, G, B)
         else:
             matmul(F[i], G, B)
-        g[i] = -_sumsq(B)
+        g[i] = -sumsq(B)
 
 
 @jit
@@ -205,7 +205,7 @@ def objective_error(F, w, R, Ri, G, B, X, pnorm, f, trace: bool) -> float:
     into R, Ri (relative for "trace", absolute for "logdet"); pnorm (N,) holds |P_i|_F;
     G, B, X are n x n scratch."""
     n = F.shape[1]
-    kappa = np.sqrt(_sumsq(R) * _sumsq(Ri))
+    kappa = np.sqrt(sumsq(R) * sumsq(Ri))
     small = n <= SMALL
     if trace:
         if small:
@@ -223,7 +223,7 @@ def objective_error(F, w, R, Ri, G, B, X, pnorm, f, trace: bool) -> float:
             else:
                 matmul(F[i], G, B)
                 matmul(F[i].T, B, X)
-            s += w[i] * pnorm[i] * _sumsq(X)
+            s += w[i] * pnorm[i] * sumsq(X)
     return _ERR_C * n * _EPS * (kappa + (s / abs(f) if trace else s))
 
 
@@ -234,7 +234,7 @@ def vertex_error(F, pnorm, trace: bool) -> float:
     n = F.shape[0]
     if trace:
         return n * _EPS
-    return _ERR_C * n * _EPS * pnorm * _sumsq(F)
+    return _ERR_C * n * _EPS * pnorm * sumsq(F)
 
 
 Verify = namedtuple("Verify", ["S", "C", "Ci", "aC", "Sig", "ESig", "B", "Eb", "L", "Li",
@@ -354,7 +354,7 @@ def _trace_difference(Fj, C, wj, v: Verify):
     matmul(v.Minv, v.K, v.B)   # M^-1 K
     matmul(v.B, v.Minv, v.H)   # H = M^-1 K M^-1
     err += _inner_abs(v.ESig, v.H)
-    _abs_llt(v.L, v.T)  # the solves are exact for M + dM_c, |dM_c| <= (3n+1) eps |L||L^T|
+    _abs_gram(v.L.T, v.T)  # the solves are exact for M + dM_c, |dM_c| <= (3n+1) eps |L||L^T|
     _absmul(v.T, v.V, v.Eb)
     err += (3 * n + 1) * eps * _inner_abs(v.Eb, v.B)
     for a in range(n):
@@ -471,18 +471,6 @@ def _abs_gram(A, out):
 
 
 @jit
-def _abs_llt(L, out):
-    """out = |L| |L|^T."""
-    n = L.shape[0]
-    for a in range(n):
-        for b in range(n):
-            t = 0.0
-            for p in range(n):
-                t += abs(L[a, p]) * abs(L[b, p])
-            out[a, b] = t
-
-
-@jit
 def _tmul(A, B, out):
     """out = A^T B."""
     for a in range(A.shape[1]):
@@ -586,7 +574,8 @@ def model(F, ws: Work, trace: bool, rho: float):
 
 
 @jit
-def _sumsq(X) -> float:
+def sumsq(X) -> float:
+    """The sum of the squares of the entries of X (2-D)."""
     t = 0.0
     for i in range(X.shape[0]):
         for j in range(X.shape[1]):

@@ -35,8 +35,8 @@ import math
 
 import numpy as np
 
-from ..factored import evaluate_at, gap, gradient_at, model_at, work
-from ..linalg import apply_qt, copy, fill, householder, jit
+from ..factored import evaluate_at, gap, gradient_at, model_at, sumsq, work
+from ..linalg import apply_qt, copy, fill, householder, jit, pow2
 from . import closed_form
 
 TOL = 1e-13
@@ -214,7 +214,7 @@ def _nearest(Et, x, P, z, r, cols, Elt, Vlt, Rls):
         copy(x, z)
     else:
         fill(P, False)
-    norm = np.sqrt(_sumsq2(Et) / N)
+    norm = np.sqrt(sumsq(Et) / N)
     tol = 10.0 * max(M, N) * _EPS * max(norm, 1.0)
     for _ in range(3 * N + 10):
         j = _entering(Et, x, r, P, tol)
@@ -246,9 +246,8 @@ def _normalise(Et):
             s += Et[i, p] * Et[i, p]
     if not 0.0 < s < np.inf:
         return
-    # 2^shift is a normal number (|shift| <= 540 for a finite s > 0), so multiplying by it
-    # rounds exactly as ldexp would, without a library call per entry
-    scale = np.ldexp(1.0, -math.frexp(np.sqrt(s / N))[1])
+    # 2^shift is a normal number (|shift| <= 540 for a finite s > 0): exact, as ldexp
+    scale = pow2(-math.frexp(np.sqrt(s / N))[1])
     for i in range(N):
         for p in range(M - 1):
             Et[i, p] *= scale
@@ -342,12 +341,3 @@ def _positive_on(z, P) -> bool:
         if P[i] and not z[i] > 0.0:
             return False
     return True
-
-
-@jit
-def _sumsq2(X) -> float:
-    t = 0.0
-    for i in range(X.shape[0]):
-        for j in range(X.shape[1]):
-            t += X[i, j] * X[i, j]
-    return t
