@@ -118,6 +118,33 @@ def integer(where: str, value, low: int | None = None, high: int | None = None) 
     return value
 
 
+def probability(where: str, value) -> float:
+    """A number in [0, 1]."""
+    return number(where, value, low=0, high=1)
+
+
+def table(value, where: str, rules: dict) -> dict:
+    """A table with exactly the fields of rules {field: check(where, value)}, each checked."""
+    fields(value, where, rules)
+    for key, rule in rules.items():
+        rule(f"{where}.{key}", value[key])
+    return value
+
+
+def sources(value, where: str, member, item: str = "source") -> dict:
+    """A table {processing node: [its sources]} naming at least one node, each source
+    checked by member(where, source) and none listed twice (`item` names them)."""
+    if not isinstance(value, dict) or not value:
+        raise ConfigError(f"{where} must be a table naming at least one processing node, got "
+                          f"{value!r}")
+    for name, members in value.items():
+        for i, k in enumerate(items(f"{where}.{name}", members)):
+            member(f"{where}.{name}[{i}]", k)
+        if len(set(members)) != len(members):
+            raise ConfigError(f"{where}.{name} names a {item} twice: {members!r}")
+    return value
+
+
 def choice(where: str, value, options: Collection[str]) -> str:
     if not isinstance(value, str) or value not in options:
         raise ConfigError(f"{where} must be one of {list(options)}, got {value!r}")

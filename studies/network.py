@@ -106,10 +106,6 @@ def _positive(where, x):
     return configs.number(where, x, above=0)
 
 
-def _probability(where, x):
-    return configs.number(where, x, low=0, high=1)
-
-
 def _count(where, x):
     return configs.integer(where, x, low=1)
 
@@ -119,10 +115,10 @@ def _numbers(where, x, rule=configs.number):
 
 
 TRACKER = {
-    "n_particles": _count, "birth_prob": _probability, "clutter_prior": _probability,
+    "n_particles": _count, "birth_prob": configs.probability, "clutter_prior": configs.probability,
     "lifetime_shape": _positive, "lifetime_scale": _positive, "clutter_density": _positive,
     "prior_pos_var": _positive, "prior_vel_var": _positive,
-    "resample_threshold": _probability,
+    "resample_threshold": configs.probability,
 }
 METRICS = {"cutoff": _positive, "order": lambda w, x: configs.number(w, x, low=1),
            "alpha": lambda w, x: configs.number(w, x, high=2, above=0)}
@@ -133,7 +129,7 @@ BENCHMARK = {
     "sources_at_targets": lambda w, x: configs.integer(w, x, low=2),
     "methods": lambda w, x: [configs.choice(f"{w}[{i}]", v, CI_FAMILY)
                              for i, v in enumerate(configs.items(w, x))],
-    "p_detect": lambda w, x: [_probability(f"{w}[{i}]", v)
+    "p_detect": lambda w, x: [configs.probability(f"{w}[{i}]", v)
                               for i, v in enumerate(configs.items(w, x, length=2))],
     "noise_sd": _positive, "spacing": _positive, "threshold": _positive,
     "growth": lambda w, x: configs.number(w, x, low=1), "warmup": _count, "steps": _count,
@@ -150,7 +146,7 @@ def check(config: dict) -> None:
                                 "rules", "fusion", "metrics", "figure", "benchmark"))
     configs.run_fields(config)
     sc = scenario(config)
-    tr = _check_table(config["tracker"], "tracker", TRACKER)
+    tr = configs.table(config["tracker"], "tracker", TRACKER)
     if tr["birth_prob"] == 0 and tr["clutter_prior"] == 0:
         raise configs.ConfigError("tracker.birth_prob and tracker.clutter_prior must not "
                                   "both be 0: nothing could explain a measurement")
@@ -160,18 +156,11 @@ def check(config: dict) -> None:
     fusion = configs.fields(config["fusion"], "fusion", ("growth",))
     configs.number("fusion.growth", fusion["growth"], low=1,
                    why="the paper's chi^-1, the covariance growth over a missed detection")
-    _check_table(config["metrics"], "metrics", METRICS)
+    configs.table(config["metrics"], "metrics", METRICS)
     _check_figure(config)
-    bm = _check_table(config["benchmark"], "benchmark", BENCHMARK)
+    bm = configs.table(config["benchmark"], "benchmark", BENCHMARK)
     configs.backend("benchmark.backend", bm["backend"],
                     nodes=max(bm["sources"] + [bm["sources_at_targets"]]))
-
-
-def _check_table(table, where: str, rules: dict) -> dict:
-    configs.fields(table, where, rules)
-    for key, rule in rules.items():
-        rule(f"{where}.{key}", table[key])
-    return table
 
 
 def _check_network(net, monitors: int) -> int:
@@ -181,10 +170,10 @@ def _check_network(net, monitors: int) -> int:
     configs.integer("network.memory", net["memory"], low=1)
     configs.choice("network.association", net["association"], ("nearest", "assignment"))
     configs.number("network.threshold", net["threshold"], above=0)
-    level1 = _check_level(net["level1"], "network.level1",
-                          lambda w, k: configs.integer(w, k, low=1, high=monitors))
-    level2 = _check_level(net["level2"], "network.level2",
-                          lambda w, k: configs.choice(w, k, list(level1)))
+    level1 = configs.sources(net["level1"], "network.level1",
+                             lambda w, k: configs.integer(w, k, low=1, high=monitors))
+    level2 = configs.sources(net["level2"], "network.level2",
+                             lambda w, k: configs.choice(w, k, list(level1)))
     both = sorted(set(level1) & set(level2))
     if both:
         raise configs.ConfigError(f"network.level2 reuses the first-level names {both}")
@@ -193,19 +182,6 @@ def _check_network(net, monitors: int) -> int:
         configs.integer(f"network.min_sources.{level}", minimum[level], low=1,
                         high=min(len(m) for m in nodes.values()))
     return max(len(m) for m in (*level1.values(), *level2.values()))
-
-
-def _check_level(table, where: str, member) -> dict:
-    """A table {processing node: [its sources]}, at least one node, no source twice."""
-    if not isinstance(table, dict) or not table:
-        raise configs.ConfigError(f"{where} must be a table naming at least one processing "
-                                  f"node, got {table!r}")
-    for name, members in table.items():
-        for i, k in enumerate(configs.items(f"{where}.{name}", members)):
-            member(f"{where}.{name}[{i}]", k)
-        if len(set(members)) != len(members):
-            raise configs.ConfigError(f"{where}.{name} names a source twice: {members!r}")
-    return table
 
 
 def _check_rules(rules) -> None:
@@ -306,15 +282,25 @@ def run_network(config: dict, seed: np.random.SeedSequence):
 
 # ---------------------------------------------------------------------------- scoring
 
-def matched_ids(series, truth: np.ndarray, alive: np.ndarray, c: float) -> list[list[int]]:
-    """For each target j (of truth (J, T, >= 2), alive (J, T)), the ids of the estimates
-    matched to it, in step order; series holds one Estimates per step."""
-    ids: list[list[int]] = [[] for _ in range(len(truth))]
-    for t, est in enumerate(series):
+def matches(series, truth: np.ndarray, alive: np.ndarray, c: float) -> list[tuple]:
+    """Per step, the estimates matched to the alive targets (truth (J, T, >= 2), alive
+    (J, T)) by trackers.metrics.match on position, gated at c: (estimate rows (K,),
+    target indices (K,)); series holds one Estimates per step."""
+    out = []
+    for t, e in enumerate(series):
         on = np.flatnonzero(alive[:, t])
-        rows, cols = metrics.match(est.means[:, POSITION], truth[on, t][:, POSITION], c)
-        for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
-            ids[on[j]].append(int(est.ids[i]))
+        rows, cols = metrics.match(e.means[:, POSITION], truth[on, t][:, POSITION], c)
+        out.append((rows, on[cols]))
+    return out
+
+
+def matched_ids(series, pairs: list[tuple], n_targets: int) -> list[list[int]]:
+    """For each of the n_targets targets, the ids of the estimates matched to it (pairs of
+    `matches`), in step order."""
+    ids: list[list[int]] = [[] for _ in range(n_targets)]
+    for e, (rows, targets) in zip(series, pairs, strict=True):
+        for i, j in zip(rows.tolist(), targets.tolist(), strict=True):
+            ids[j].append(int(e.ids[i]))
     return ids
 
 
@@ -330,19 +316,19 @@ def scores(config: dict, data: MultiTargetData, series) -> dict:
     """OSPA, GOSPA, cardinality error, id switches per target and ANEES of one node's
     Estimates series (one per step) against the truth (module docstring)."""
     m = config["metrics"]
+    pairs = matches(series, data.truth, data.alive, m["cutoff"])
     ospa, gospa, card, est, true, covs = [], [], [], [], [], []
-    for t, e in enumerate(series):
-        X = data.truth[data.alive[:, t], t]
-        ospa.append(metrics.ospa(e.means[:, POSITION], X[:, POSITION], m["cutoff"], m["order"]))
-        gospa.append(metrics.gospa(e.means[:, POSITION], X[:, POSITION], m["cutoff"],
-                                   m["order"], m["alpha"]))
+    for t, (e, (rows, targets)) in enumerate(zip(series, pairs, strict=True)):
+        X = data.truth[data.alive[:, t], t][:, POSITION]
+        ospa.append(metrics.ospa(e.means[:, POSITION], X, m["cutoff"], m["order"]))
+        gospa.append(metrics.gospa(e.means[:, POSITION], X, m["cutoff"], m["order"],
+                                   m["alpha"]))
         card.append(abs(len(e) - len(X)))
-        rows, cols = metrics.match(e.means[:, POSITION], X[:, POSITION], m["cutoff"])
         est.append(e.means[rows])
-        true.append(X[cols])
+        true.append(data.truth[targets, t])
         covs.append(e.covs[rows])
     nees = metrics.nees(np.concatenate(est), np.concatenate(true), np.concatenate(covs))
-    ids = matched_ids(series, data.truth, data.alive, m["cutoff"])
+    ids = matched_ids(series, pairs, len(data.truth))
     return {"ospa": float(np.mean(ospa)), "gospa": float(np.mean(gospa)),
             "card_err": float(np.mean(card)), "id_switches": id_switches(ids, data.alive),
             "anees": float(np.mean(nees)) if nees.size else float("nan")}
@@ -364,12 +350,12 @@ def figure_data(config: dict, data: MultiTargetData, series) -> dict:
     nodes = {}
     for node in fig["nodes"]:
         s = series[f"{fig['rule']} {node}"]
-        ids = matched_ids(s, data.truth, data.alive, c)
+        ids = matched_ids(s, matches(s, data.truth, data.alive, c), len(data.truth))
         nodes[node] = {
             "rows": np.concatenate([np.column_stack([np.full(len(e), t), e.ids, e.means[:, :2]])
                                     for t, e in enumerate(s)]),
             "counts": [len(e) for e in s],
-            "switches": int(sum(np.count_nonzero(np.diff(i)) for i in ids if i))}
+            "switches": int(metrics.id_switches(ids).sum())}
     return {"times": data.times, "n_alive": data.alive.sum(axis=0),
             "paths": [data.truth[j, data.alive[j], :2] for j in range(len(data.truth))],
             "nodes": nodes}

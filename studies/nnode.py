@@ -52,10 +52,6 @@ OPTIMISED = ("bci", "mbci")
 
 # ---------------------------------------------------------------------- configuration
 
-def _probability(where, x):
-    return configs.number(where, x, low=0, high=1)
-
-
 def _growth(where, x):
     return configs.number(where, x, low=1, why="a covariance growth chi^-1 per missed scan")
 
@@ -70,9 +66,9 @@ def _log10_range(where, x):
 STATIC = {  # field of [static] -> its check
     "n": lambda w, x: configs.integer(w, x, low=1),
     "N": lambda w, x: configs.integer(w, x, low=2),
-    "p_center": _probability, "spread": lambda w, x: configs.number(w, x, low=0),
+    "p_center": configs.probability, "spread": lambda w, x: configs.number(w, x, low=0),
     "p_min": lambda w, x: configs.number(w, x, high=1, above=0),
-    "rho": _probability, "chi_inv_true": _growth, "reported_share": _probability,
+    "rho": configs.probability, "chi_inv_true": _growth, "reported_share": configs.probability,
     "chi_inv_assumed": _growth, "max_misses": lambda w, x: configs.integer(w, x, low=0),
     "base_log10": _log10_range, "draws": lambda w, x: configs.integer(w, x, low=1),
 }
@@ -84,7 +80,7 @@ DYNAMIC = {
     "dt": lambda w, x: configs.number(w, x, above=0),
     "q": lambda w, x: configs.number(w, x, above=0),
     "r": lambda w, x: configs.number(w, x, above=0),
-    "p_center": _probability, "spread": lambda w, x: configs.number(w, x, low=0),
+    "p_center": configs.probability, "spread": lambda w, x: configs.number(w, x, low=0),
     "p_min": lambda w, x: configs.number(w, x, high=1, above=0), "chi_inv_assumed": _growth,
     "threshold": lambda w, x: configs.number(w, x, above=0),
 }
@@ -97,7 +93,7 @@ def check(config: dict) -> None:
     configs.fields(config, "", ("runs", "seed", "backend", "static", "sweeps", "dynamic",
                                 "scaling"))
     configs.run_fields(config)
-    _check_table(config["static"], "static", STATIC)
+    configs.table(config["static"], "static", STATIC)
     sweeps = config["sweeps"]
     if not isinstance(sweeps, dict) or "N" not in sweeps:
         raise configs.ConfigError("[sweeps] must be a table with a sweep over N (the figures "
@@ -105,7 +101,7 @@ def check(config: dict) -> None:
     nodes = [config["static"]["N"]]
     for name, spec in sweeps.items():
         nodes += _check_sweep(config["static"], name, spec)
-    dyn = _check_table(config["dynamic"], "dynamic", DYNAMIC)
+    dyn = configs.table(config["dynamic"], "dynamic", DYNAMIC)
     if dyn["burn_in"] >= dyn["steps"]:
         raise configs.ConfigError(f"dynamic.burn_in must be below dynamic.steps "
                                   f"({dyn['steps']}), got {dyn['burn_in']}")
@@ -119,20 +115,13 @@ def check(config: dict) -> None:
     configs.integer("scaling.repeats", sc["repeats"], low=1)
 
 
-def _check_table(table, where: str, rules: dict) -> dict:
-    configs.fields(table, where, rules)
-    for key, rule in rules.items():
-        rule(f"{where}.{key}", table[key])
-    return table
-
-
 def _check_sweep(static: dict, name: str, spec) -> list[int]:
     """Check one sweep (either form of sweep_spec); returns the node counts it uses."""
     where = f"sweeps.{name}"
     if isinstance(spec, dict):
         configs.fields(spec, where, ("field", "values"), ("fixed",))
         configs.choice(f"{where}.field", spec["field"], STATIC)
-        _check_table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
+        configs.table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
         where += ".values"
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "

@@ -61,16 +61,9 @@ def check(config: dict) -> None:
     configs.run_fields(config)
     nodes = len(scenario(config).p_detect)
     net = configs.fields(config["network"], "network", ("neighbours", "association", "threshold"))
-    neighbours = net["neighbours"]  # processing node name -> its monitoring nodes
-    if not isinstance(neighbours, dict) or not neighbours:
-        raise configs.ConfigError("network.neighbours must be a table naming at least one "
-                                  f"processing node, got {neighbours!r}")
-    for proc, members in neighbours.items():
-        where = f"network.neighbours.{proc}"
-        for i, k in enumerate(configs.items(where, members)):
-            configs.integer(f"{where}[{i}]", k, low=1, high=nodes)
-        if len(set(members)) != len(members):
-            raise configs.ConfigError(f"{where} names a monitoring node twice: {members!r}")
+    neighbours = configs.sources(  # processing node name -> its monitoring nodes
+        net["neighbours"], "network.neighbours",
+        lambda where, k: configs.integer(where, k, low=1, high=nodes), "monitoring node")
     configs.backend("backend", config["backend"],
                     nodes=max(len(m) for m in neighbours.values()))
     configs.choice("network.association", net["association"], ("nearest", "assignment"))

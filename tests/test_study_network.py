@@ -133,7 +133,7 @@ def test_id_switches_on_a_hand_built_case():
               _estimates([[3.0, 0.0], [50.0, 50.0]], [2, 9]),  # target 1 missed, a false one
               _estimates([[4.0, 0.0], [4.0, 1.0]], [2, 1]),
               _estimates([[5.6, 0.0], [5.0, 1.0]], [3, 7])]  # id 3 beyond c from target 0
-    ids = network.matched_ids(series, truth, alive, 0.5)
+    ids = network.matched_ids(series, network.matches(series, truth, alive, 0.5), 3)
     assert ids == [[1, 1, 2, 2, 2], [2, 2, 1, 1, 7], []]
     assert network.id_switches(ids, alive) == pytest.approx(1.0)
 
