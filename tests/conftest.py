@@ -96,3 +96,20 @@ def extreme_instance(rng: np.random.Generator, N: int, n: int, kind: str, *,
     scale = 10.0 ** (base + rng.uniform(-spread / 2, spread / 2, N))
     C = C * scale[:, None, None]
     return 0.5 * (C + np.swapaxes(C, -1, -2))
+
+
+def joint(rng, covs, rho):
+    """A joint covariance (N, N, n, n) with diagonal blocks exactly covs: blocks
+    R_i C_ij R_j^T (R_i R_i^T = P_i) with C PSD, identity diagonal blocks, mixed with I
+    (DESIGN §1, "Consistency")."""
+    N, n = covs.shape[:2]
+    R = np.linalg.cholesky(covs)
+    A = rng.standard_normal((N * n, N * n + 2))
+    C = (A @ A.T).reshape(N, n, N, n).transpose(0, 2, 1, 3)
+    D = np.linalg.inv(np.linalg.cholesky(C[np.arange(N), np.arange(N)]))
+    C = np.einsum("iab,ijbc,jdc->ijad", D, C, D)
+    C = rho * C + (1 - rho) * np.eye(N)[:, :, None, None] * np.eye(n)
+    S = np.einsum("iab,ijbc,jdc->ijad", R, C, R)
+    S = 0.5 * (S + S.transpose(1, 0, 3, 2))
+    S[np.arange(N), np.arange(N)] = covs
+    return S

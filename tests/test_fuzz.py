@@ -30,7 +30,7 @@ from decimal import Decimal, localcontext
 
 import numpy as np
 import pytest
-from conftest import extreme_instance, instance, random_instance
+from conftest import extreme_instance, instance, joint, random_instance
 
 import fusion_opt as fo
 
@@ -406,7 +406,7 @@ def _fuse_checked(method, means, covs, criterion, rng, exact=True):
         p, chi = rng.uniform(0, 1, N), 10.0 ** -rng.uniform(0, 3, N)
         args, scales = {"p_detect": p, "chi": chi}, exact_scales(p, chi, N)
     if method == "known-cross":
-        args = {"cross": _joint(rng, covs)}
+        args = {"cross": joint(rng, covs, rng.uniform(0, 0.9))}
     try:
         r = fo.fuse(means, covs, method, criterion, **args)
     except (fo.FusionInputError, fo.FusionSolverError) as exc:
@@ -417,23 +417,6 @@ def _fuse_checked(method, means, covs, criterion, rng, exact=True):
     else:
         check_rule(r, means, covs, method, criterion)
     return r
-
-
-def _joint(rng, covs):
-    """A joint covariance (N, N, n, n) with diagonal blocks covs: R_i C_ij R_j^T for a random
-    correlation C with identity diagonal blocks (R_i R_i^T = P_i), mixed with I."""
-    N, n = covs.shape[:2]
-    R = np.linalg.cholesky(covs)
-    A = rng.standard_normal((N * n, N * n + 2))
-    C = (A @ A.T).reshape(N, n, N, n).transpose(0, 2, 1, 3)
-    D = np.linalg.inv(np.linalg.cholesky(C[np.arange(N), np.arange(N)]))
-    C = np.einsum("iab,ijbc,jdc->ijad", D, C, D)
-    rho = rng.uniform(0, 0.9)
-    C = rho * C + (1 - rho) * np.eye(N)[:, :, None, None] * np.eye(n)
-    S = np.einsum("iab,ijbc,jdc->ijad", R, C, R)
-    S = 0.5 * (S + S.transpose(1, 0, 3, 2))
-    S[np.arange(N), np.arange(N)] = covs
-    return S
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
@@ -553,7 +536,7 @@ def test_fuse_batch_equals_fuse_bit_for_bit(method, criterion):
     if method == "mbci":
         args = {"p_detect": rng.uniform(0, 1, (B, N)), "chi": rng.uniform(0.1, 1, (B, N))}
     if method == "known-cross":
-        args = {"cross": np.stack([_joint(rng, c) for c in covs])}
+        args = {"cross": np.stack([joint(rng, c, rng.uniform(0, 0.9)) for c in covs])}
     try:
         r = fo.fuse_batch(means, covs, method, criterion, **args)
     except (fo.FusionInputError, fo.FusionSolverError):

@@ -5,6 +5,7 @@ joint covariances (DESIGN §1), known-cross's checks of `cross`, and the glue of
 
 import numpy as np
 import pytest
+from conftest import joint
 from test_rules_exact import det, exact, inv, to_float
 
 import fusion_opt as fo
@@ -24,23 +25,6 @@ def problem(rng, N, n, spread=0.0, log10_cond=2.0):
     """means (N, n) and covs (N, n, n), node scales 10^U(-spread, spread)."""
     covs = np.stack([spd(rng, n, rng.uniform(-spread, spread), log10_cond) for _ in range(N)])
     return rng.standard_normal((N, n)), covs
-
-
-def joint(rng, covs, rho):
-    """A joint covariance (N, N, n, n) with diagonal blocks exactly covs: blocks
-    R_i C_ij R_j^T (R_i R_i^T = P_i) with C PSD, identity diagonal blocks, mixed with I
-    (DESIGN §1, "Consistency")."""
-    N, n = covs.shape[:2]
-    R = np.linalg.cholesky(covs)
-    A = rng.standard_normal((N * n, N * n + 2))
-    C = (A @ A.T).reshape(N, n, N, n).transpose(0, 2, 1, 3)
-    D = np.linalg.inv(np.linalg.cholesky(C[np.arange(N), np.arange(N)]))
-    C = np.einsum("iab,ijbc,jdc->ijad", D, C, D)
-    C = rho * C + (1 - rho) * np.eye(N)[:, :, None, None] * np.eye(n)
-    S = np.einsum("iab,ijbc,jdc->ijad", R, C, R)
-    S = 0.5 * (S + S.transpose(1, 0, 3, 2))
-    S[np.arange(N), np.arange(N)] = covs
-    return S
 
 
 def flat(S):
