@@ -5,6 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
+from fusion_opt import FusionInputError
 from trackers import metrics
 
 
@@ -149,3 +150,7 @@ def test_matching_is_the_optimal_assignment_not_greedy():
 def test_id_switches_count_changes_of_the_matched_id():
     """Target 0 keeps id 7 through a gap, target 1 goes 3 -> 4 -> 3, target 2 never matched."""
     np.testing.assert_array_equal(metrics.id_switches([[7, 7, 7], [3, 4, 3], []]), [0, 2, 0])
+    for bad, match in ((5, "ids must be a sequence"), ([[1, "a"]], r"ids\[0\]"),
+                       ([[[1, 2]]], r"ids\[0\] must have 1 dimension")):
+        with pytest.raises(FusionInputError, match=match):
+            metrics.id_switches(bad)

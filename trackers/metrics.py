@@ -194,8 +194,11 @@ def id_switches(ids) -> np.ndarray:
     matched track ids, ids[j] the ids matched to target j in step order (steps where it
     is unmatched left out, so a track that drops out and returns with its id does not
     switch)."""
-    return np.array([np.count_nonzero(np.diff(np.asarray(s, dtype=np.int64))) for s in ids],
-                    dtype=np.int64)
+    if isinstance(ids, str | bytes) or not hasattr(ids, "__iter__"):
+        raise FusionInputError(f"ids must be a sequence of id sequences, one per target, got "
+                               f"{type(ids).__name__}")
+    seqs = [_checks.finite_array(f"ids[{j}]", s, ndim=1) for j, s in enumerate(ids)]
+    return np.array([np.count_nonzero(np.diff(s)) for s in seqs], dtype=np.int64)
 
 
 def cardinality_error(n_estimated, n_true) -> np.ndarray:
