@@ -100,11 +100,25 @@ _NAMES = Names()
 
 def request(method, criterion, backend, args: dict) -> Request:
     """Check the options by name (module docstring); nothing is computed yet."""
+    args = {k: v for k, v in args.items() if v is not None}  # None: not given
+    if not args.keys() - {"polish"} and type(method) is str and type(criterion) is str \
+            and type(backend) in (str, type(None)) and type(args.get("polish", True)) is bool:
+        return _plain_request(method, criterion, backend, args.get("polish", True))
+    return _request(method, criterion, backend, args)
+
+
+@functools.lru_cache(maxsize=256)
+def _plain_request(method: str, criterion: str, backend: str | None, polish: bool):
+    """`request` without method arguments, the common case, checked once per option set
+    (a check costs a tenth of a small fusion); a refused set is not cached."""
+    return _request(method, criterion, backend, {"polish": polish})
+
+
+def _request(method, criterion, backend, args: dict) -> Request:
     if not isinstance(method, str) or method not in METHODS:
         raise FusionInputError(f"method must be one of {METHODS}, got {method!r}")
     if not isinstance(criterion, str) or criterion not in CRITERIA:
         raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
-    args = {k: v for k, v in args.items() if v is not None}  # None: not given
     polish = args.pop("polish", True)
     if not isinstance(polish, bool):
         raise FusionInputError(f"polish must be True or False, got {polish!r}")
@@ -222,9 +236,9 @@ class _Arrays:
 
     @staticmethod
     def of(B, N, n) -> _Arrays:
-        """New arrays for a batch; for one problem, this thread's arrays of that shape,
-        reused (results copy what they keep), since allocating them costs as much as
-        fusing a small problem."""
+        """New arrays for a batch; for one problem, this thread's scratch arrays of that
+        shape, reused since allocating them all costs as much as fusing a small problem,
+        with new output arrays W, mean and cov, which the result keeps."""
         if B != 1:
             return _Arrays(B, N, n)
         cache = _THREAD.__dict__.setdefault("arrays", {})
@@ -232,7 +246,9 @@ class _Arrays:
             if len(cache) > 64:
                 cache.clear()
             cache[N, n] = _Arrays(1, N, n)
-        return cache[N, n]
+        a = cache[N, n]
+        a.W, a.mean, a.cov = np.empty((1, N)), np.empty((1, n)), np.empty((1, n, n))
+        return a
 
 
 _THREAD = threading.local()
@@ -316,7 +332,11 @@ _OPTIMAL_OR_NOT = np.array([Status.OPTIMAL, Status.OPTIMAL_INACCURATE], dtype=ob
 
 
 def _ci_output(a, solve_time, polish_iters):
-    status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
+    if len(a.stats) == 1:
+        status = (Status.OPTIMAL if a.stats[0, 2] <= OPTIMAL_RTOL else
+                  Status.OPTIMAL_INACCURATE,)
+    else:
+        status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
     return (a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1], status, a.iters, solve_time,
             polish_iters, "ci_weights")
 
@@ -395,9 +415,11 @@ def _result(req, out, batch):
     if batch:
         return BatchFusionResult(w, mean, cov, obj, gap, status, iters, backend, solve_time,
                                  req.method, req.criterion, weights_are)
-    return FusionResult(w[0], mean[0], cov[0], float(obj[0]), float(gap[0]), status[0],
-                        backend, solve_time, int(iters[0]), req.method, req.criterion,
-                        polish_iters, weights_are)
+    return FusionResult.owning(
+        weights=w[0], mean=mean[0], cov=cov[0], objective=float(obj[0]), gap=float(gap[0]),
+        status=status[0], backend=backend, solve_time=solve_time, iterations=int(iters[0]),
+        method=req.method, criterion=req.criterion, polish_iterations=polish_iters,
+        weights_are=weights_are)
 
 
 def _memory(what, need, n, N, limit_name) -> str:

@@ -121,3 +121,21 @@ def test_one_compiled_specialisation_whatever_the_inputs_flags():
     fo.fuse_batch(np.stack([est.means] * 3), np.stack([est.covs] * 3), "mbci", p_detect=P,
                   chi=0.9)
     assert len(core.fuse_exact.signatures) == 1, core.fuse_exact.signatures
+
+
+@pytest.mark.parametrize("backend", ["newton", "closed-form", "clarabel-direct"])
+def test_results_own_read_only_arrays_not_shared_with_the_next_call(backend):
+    """One problem reuses per-thread scratch arrays: a result must keep arrays of its own
+    that the next fusion of the same shape cannot overwrite."""
+    rng = np.random.default_rng(5)
+    covs = [rng.standard_normal((2, 3, 3)) for _ in range(2)]
+    covs = [A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3) for A in covs]
+    first = fo.bci(np.zeros((2, 3)), covs[0], backend=backend)
+    kept = [first.weights.copy(), first.mean.copy(), first.cov.copy()]
+    second = fo.bci(np.ones((2, 3)), covs[1], backend=backend)
+    for name, before in zip(("weights", "mean", "cov"), kept, strict=True):
+        a, b = getattr(first, name), getattr(second, name)
+        assert not a.flags.writeable and not np.shares_memory(a, b)
+        np.testing.assert_array_equal(a, before)
+        with pytest.raises(ValueError):
+            a[...] = 0.0
