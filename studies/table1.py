@@ -30,6 +30,8 @@ ROWS = ("KF a", "KF b", "RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI l
 PATH_ROWS = ("RBPF a", "RBPF b", "modified CI")
 COVNORM_ROWS = ("RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet")
 COLUMNS = ("mse_full", "mncm_full", "mse_pos", "mncm_pos", "anees")
+CHECKED = ("CI", "modified CI", "BCI logdet")  # the rules with weights, checked per run
+CHECK = "check"  # a run's result key: {row: worst objective difference to the reference}
 
 
 def scenario(config: dict) -> Table1Config:
@@ -39,9 +41,12 @@ def scenario(config: dict) -> Table1Config:
 def check(config: dict) -> None:
     """Refuse, with a ConfigError naming the field, anything in config this study cannot
     run: called on the whole merged configuration before anything runs."""
-    configs.fields(config, "", ("runs", "seed", "backend", "scenario", "fusion"))
+    configs.fields(config, "", ("runs", "seed", "backend", "scenario", "fusion", "check"))
     configs.run_fields(config)
     configs.backend("backend", config["backend"], nodes=2)
+    check = configs.fields(config["check"], "check", ("backend", "steps"))
+    configs.backend("check.backend", check["backend"], nodes=2)
+    configs.integer("check.steps", check["steps"], low=0)
     if len(scenario(config).p_detect) != 2:
         raise configs.ConfigError("scenario.p_detect must hold 2 detection probabilities "
                                   f"(nodes a and b), got {config['scenario']['p_detect']!r}")
@@ -56,7 +61,8 @@ def check(config: dict) -> None:
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):
-    """Simulate one run; returns (data, {row: (means (T, 4), covs (T, 4, 4))})."""
+    """Simulate one run; returns (data, {row: (means (T, 4), covs (T, 4, 4))}, the check of
+    the fusion against the reference backend: `_fused`)."""
     sc = scenario(config)
     sim_rng, *filter_rngs = (np.random.default_rng(s) for s in seed.spawn(3))
     data = simulate_table1(sc, sim_rng)
@@ -69,11 +75,13 @@ def estimates(config: dict, seed: np.random.SeedSequence):
                       resample_threshold=sc.resample_threshold)
         out[f"KF {name}"] = (kf.means, kf.covs)
         out[f"RBPF {name}"] = (pf.means, pf.covs)
-    out.update(_fused(config, sc, out["RBPF a"], out["RBPF b"]))
-    return data, out
+    fused, check = _fused(config, sc, out["RBPF a"], out["RBPF b"])
+    return data, out | fused, check
 
 
-def _fused(config, sc, a, b) -> dict:
+def _fused(config, sc, a, b) -> tuple[dict, dict]:
+    """({row: (means (T, n), covs (T, n, n))} of the fusion rules, the check of their
+    weights against config["check"]["backend"] on a sample of steps)."""
     means = np.stack([a[0], b[0]], axis=1)  # (T, 2, n)
     covs = np.stack([a[1], b[1]], axis=1)  # (T, 2, n, n)
     backend = config["backend"]
@@ -82,21 +90,34 @@ def _fused(config, sc, a, b) -> dict:
              "modified CI": dict(method="mbci", backend=backend, p_detect=list(sc.p_detect),
                                  chi=chi),
              "BCI logdet": dict(method="bci", backend=backend, criterion="logdet")}
-    return {row: _fuse_series(means, covs, **kw) for row, kw in rules.items()}
+    results = {row: fo.fuse_batch(means, covs, **kw) for row, kw in rules.items()}
+    steps = np.unique(np.linspace(0, len(means) - 1, config["check"]["steps"]).astype(int))
+    reference = {"backend": config["check"]["backend"], "polish": False}
+    check = {row: _disagreement(results[row], means, covs, steps, rules[row] | reference)
+             for row in CHECKED}
+    return {row: (r.mean, r.cov) for row, r in results.items()}, check
 
 
-def _fuse_series(means, covs, method, criterion="trace", **args):
-    """Fuse every step: means (T, N, n), covs (T, N, n, n) -> (T, n), (T, n, n)."""
-    r = fo.fuse_batch(means, covs, method=method, criterion=criterion, **args)
-    return r.mean, r.cov
+def _disagreement(ours, means, covs, steps, reference: dict) -> dict:
+    """Objective differences at the sampled steps, ours minus that of the reference's
+    unpolished answer (relative to |f| for "trace", in nats for "logdet"): the largest in
+    absolute value and the largest (<= 0 where ours is at least as good); 0.0 with no
+    step."""
+    if not len(steps):
+        return {"abs": 0.0, "max": 0.0}
+    ref = fo.fuse_batch(means[steps], covs[steps], **reference)
+    diff = ours.objective[steps] - ref.objective
+    if ours.criterion == "trace":
+        diff = diff / np.abs(ref.objective)
+    return {"abs": float(np.abs(diff).max()), "max": float(diff.max())}
 
 
 def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dict, dict]:
     """(scores of every row, figure data or None) of one run (a pure function of config
     and seed); the figure data is run FIGURE_RUN's."""
-    data, est = estimates(config, seed)
+    data, est, check = estimates(config, seed)
     figure = figure_data(data, est) if index == FIGURE_RUN else None
-    return {row: _scores(*est[row], data.truth) for row in ROWS}, figure
+    return {**{row: _scores(*est[row], data.truth) for row in ROWS}, CHECK: check}, figure
 
 
 def figure_data(data, est) -> dict:
@@ -158,7 +179,22 @@ def _markdown(config, rows, results) -> str:
     for col, p in _paired(results).items():
         lines.append(f"| {col} | {stats.fmt(p['mean_diff'], p['low'], p['high'], 3)} "
                      f"| {p['share_better']:.2f} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + ["", _check_note(config, results)]) + "\n"
+
+
+def _check_note(config, results) -> str:
+    """The worst disagreement of the fusion with the reference backend over every run."""
+    check = config["check"]
+    if check["steps"] == 0:
+        return "The fusion was not checked against a reference backend (check.steps = 0)."
+    worst = {row: [max(r[CHECK][row][k] for r in results) for k in ("abs", "max")]
+             for row in CHECKED}
+    return (f"Check: at {check['steps']} evenly spaced steps of every run, the rules with "
+            f"weights were fused again by {check['backend']!r} (unpolished). Objective "
+            f"differences, {config['backend']} minus {check['backend']} (relative for "
+            "trace, nats for log det), largest in absolute value / largest (<= 0: "
+            f"{config['backend']} never worse): "
+            + ", ".join(f"{row} {a:.2g} / {m:.2g}" for row, (a, m) in worst.items()) + ".")
 
 
 def _figures(config, figure, out) -> None:

@@ -26,6 +26,8 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "runs = 0\n", "runs must be an integer >= 1, got 0"),
     ("table1", 'runs = "5"\n', "runs must be an integer >= 1, got '5'"),
     ("table1", "seed = -1\n", "seed must be an integer >= 0, got -1"),
+    ("table1", "[check]\nsteps = -1\n", "check.steps must be an integer >= 0, got -1"),
+    ("table1", '[check]\nbackend = "gurobi"\n', "check.backend must be one of ['newton'"),
     ("table1", "runs = [\n", "--config"),
     ("table2", '[network]\nassociation = "closest"\n', "network.association must be one of"),
     ("table2", "[network]\nthreshold = -0.3\n", "network.threshold must be a finite number > 0"),
