@@ -418,3 +418,43 @@ def test_adapter_empty_steps_float_times_and_refusals():
     wrong = fs.StoneSoupTracker([(T0, {Track(_states(np.random.default_rng(0), 1))})], ndim=6)
     with pytest.raises(fo.FusionInputError, match="dimension 4"):
         wrong.step(None)
+
+
+def test_a_network_mixes_a_stone_soup_tracker_and_one_of_ours():
+    """A Stone Soup MultiTargetTracker and our KalmanFilter track one target from the same
+    simulated detections (Stone Soup's state order [x, vx, y, vy]); a processing node
+    associates and fuses their reports at every step, as fo.bci fuses the two alone."""
+    from trackers.kalman import KalmanFilter
+    from trackers.models import LinearGaussian as OurModel
+
+    truth = MultiTargetGroundTruthSimulator(
+        transition_model=CombinedLinearGaussianTransitionModel([ConstantVelocity(0.01)] * 2,
+                                                               seed=1),
+        initial_state=GaussianState(np.zeros(4), np.eye(4), timestamp=T0), number_steps=12,
+        birth_rate=0, death_probability=0, seed=2,
+        preexisting_states=[np.array([0.0, 1.0, 0.0, 0.5])])
+    scans = [(t, set(d)) for t, d in SimpleDetectionSimulator(
+        groundtruth=truth, measurement_model=LinearGaussian(4, (0, 2), np.eye(2), seed=3),
+        meas_range=np.array([[-30, 30], [-30, 30]]), detection_probability=1.0,
+        clutter_rate=0.0, seed=4)]
+    cv = np.array([[1.0, 1.0], [0.0, 1.0]])
+    q = 0.01 * np.kron(np.eye(2), [[1 / 3, 1 / 2], [1 / 2, 1]])  # ConstantVelocity(0.01)
+    model = OurModel(np.kron(np.eye(2), cv), q, np.array([[1.0, 0, 0, 0], [0, 0, 1, 0]]),
+                     np.eye(2))
+    ours = KalmanFilter(model, np.zeros(4), np.diag([10.0, 1.0, 10.0, 1.0]), name="kf")
+    fusion = fo.ProcessingNode(["ss", "kf"], method="bci", threshold=5.0, dims=[0, 2])
+    net = fo.Network({"ss": fs.StoneSoupTracker(_stone_soup_tracker(), ndim=4, epoch=T0),
+                      "kf": ours}, {"fusion": fusion})
+    fused_steps = 0
+    for k, (time, detections) in enumerate(scans):
+        z = np.array([np.ravel(d.state_vector) for d in detections]).reshape(-1, 2)
+        out = net.step({"ss": (time, detections), "kf": z}, time=k * 1.0)
+        assert len(out["fusion"]) >= 1 and out["fusion"].time == k * 1.0
+        if len(out["ss"]) == 1:  # both report the target: one fused track, as fo.bci
+            ref = fo.bci(np.concatenate([out["ss"].means, out["kf"].means]),
+                         np.concatenate([out["ss"].covs, out["kf"].covs]))
+            assert len(out["fusion"]) == 1
+            np.testing.assert_allclose(out["fusion"].means[0], ref.mean, rtol=1e-12)
+            np.testing.assert_allclose(out["fusion"].covs[0], ref.cov, rtol=1e-12)
+            fused_steps += 1
+    assert fused_steps >= 8
