@@ -41,6 +41,7 @@ STUDIES = {
     "backends": "studies.backends",
     "nnode": "studies.nnode",
     "network": "studies.network",
+    "stonesoup": "studies.stonesoup",
 }
 GROUPS = {"paper": ("table1", "table2")}
 STORE, META, REPORT = "runs.sqlite", "meta.json", "report.json"
