@@ -119,4 +119,6 @@ def _stack_pair(a, b, name_a, name_b) -> np.ndarray:
     a, b = real_array(a, name_a), real_array(b, name_b)
     if a.shape != b.shape:
         raise FusionInputError(f"{name_a} has shape {a.shape} but {name_b} has {b.shape}")
-    return np.stack([a, b])
+    pair = np.empty((2, *a.shape))  # np.stack's generality costs 2 us here, a third of ci
+    pair[0], pair[1] = a, b
+    return pair
