@@ -19,6 +19,17 @@ OUT/NAME/runs.sqlite), or `run(config, out, quick=, progress=)` and
 from __future__ import annotations
 
 import os
+import signal
+import sys
+
+
+def _stop_while_starting(*_) -> None:
+    print("interrupted while starting: nothing was run", file=sys.stderr)
+    sys.exit(130)
+
+
+if __name__ == "__main__":  # Ctrl-C during the imports below: one line, no traceback
+    signal.signal(signal.SIGINT, _stop_while_starting)
 
 # Studies parallelise over runs in processes; multi-threaded BLAS inside each process only
 # contends for the same cores (measured: a 32 x 32 eigh took 6 ms instead of 0.07 ms with
@@ -27,7 +38,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import importlib  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -146,6 +156,9 @@ def _run_study(name: str, config: dict, args) -> None:
         meta.write(out / META, study=name, config=config, quick=args.quick,
                    seed=config["seed"], runs=config["runs"], command=args.command_line,
                    this_invocation_wall_time_s=wall, **store.totals())
+    except runner.RunError as exc:
+        raise runner.RunError(f"{name}: {exc} ({len(store.done())} of {config['runs']} "
+                              f"runs are stored in {store.path})") from None
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"{len(store.done())} of {config['runs']} runs of {name} "
                                 f"are stored in {store.path}; run the same command to "
@@ -220,6 +233,8 @@ def _report_runs(module, store: Store, out: Path) -> int:
 
 
 def main(argv=None) -> int:
+    if signal.getsignal(signal.SIGINT) is _stop_while_starting:  # started: Ctrl-C as usual
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
     args.command_line = " ".join(["python -m studies", *argv])

@@ -1,9 +1,16 @@
 """Study configurations: TOML defaults per study, a [quick] table of overrides, a user
 file merged on top, and a stable hash that keys the results database.
 
+A user file (and [quick]) is merged table by table: a field it gives replaces the
+default's, and a table it gives is merged field by field, except the tables of named
+entries a study lists in its NAMED (processing nodes, rules, sweeps): the file's table
+replaces the default's whole, so what the file names is exactly what runs.
+
 Each study module has a `check(config)` that refuses, before anything runs, every field
 it cannot use; the helpers below give those refusals one form, a ConfigError naming the
-field as the user writes it ("fusion.chi_inv must be a number >= 1 ..., got 0.5").
+field as the user writes it ("fusion.growth must be a number >= 1 ..., got 0.5").
+The covariance growth over a missed detection is `growth` everywhere (the paper's
+chi^-1 >= 1, the name fusion_opt takes); the older names are refused with a hint.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import importlib
 import json
 import math
 import tomllib
@@ -28,22 +36,26 @@ class ConfigError(ValueError):
 # ----------------------------------------------------------------------------- loading
 
 def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict:
-    """The configuration of study `name`: defaults, then [quick], then the file at path."""
+    """The configuration of study `name`: defaults, then [quick], then the file at path.
+    The tables of named entries that module studies.NAME lists in NAMED (dotted paths,
+    "network.neighbours") are replaced whole by an override instead of merged into."""
     text = resources.files("studies").joinpath("configs", f"{name}.toml").read_text()
     config = tomllib.loads(text)
+    named = frozenset(getattr(importlib.import_module(f"studies.{name}"), "NAMED", ()))
     quick_over = config.pop("quick", {})
     if quick:
-        config = _merge(config, quick_over)
+        config = _merge(config, quick_over, named)
     if path is not None:
-        config = _merge(config, _user_file(path, config))
+        config = _merge(config, _user_file(path, config), named)
     return config
 
 
-def _merge(base: dict, over: dict) -> dict:
+def _merge(base: dict, over: dict, named: frozenset = frozenset(), where: str = "") -> dict:
     out = copy.deepcopy(base)
     for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+        at = f"{where}.{key}" if where else key
+        if isinstance(value, dict) and isinstance(out.get(key), dict) and at not in named:
+            out[key] = _merge(out[key], value, named, at)
         else:
             out[key] = copy.deepcopy(value)
     return out
@@ -58,8 +70,21 @@ def _user_file(path, defaults: dict) -> dict:
     unknown = sorted(set(user) - set(defaults))
     if unknown:
         raise ConfigError(f"--config {path}: unknown field(s) {unknown}; "
-                          f"known: {sorted(defaults)}")
+                          f"known: {sorted(defaults)}{renamed_hint(unknown)}")
     return user
+
+
+RENAMED = {  # an older or library-side name -> the field a configuration uses
+    "chi_inv": "growth", "chi": "growth (= 1 / chi)", "chi_inv_true": "growth_true",
+    "chi_inv_assumed": "growth_assumed", "chi_stale": "growth_stale",
+}
+
+
+def renamed_hint(unknown) -> str:
+    """' (chi_inv is now growth, ...)' for the unknown names that were renamed, else ''."""
+    hints = [f"{k} is now {RENAMED[k]}" for k in unknown if k in RENAMED]
+    return f" ({'; '.join(hints)}: the covariance growth over a missed detection, the " \
+           "paper's chi^-1 >= 1)" if hints else ""
 
 
 def config_hash(config: dict) -> str:
@@ -81,7 +106,7 @@ def fields(table, where: str, required: Collection[str],
     unknown = sorted(set(table) - set(required) - set(optional))
     if unknown:
         raise ConfigError(f"{label} has unknown field(s) {unknown}; known: "
-                          f"{sorted({*required, *optional})}")
+                          f"{sorted({*required, *optional})}{renamed_hint(unknown)}")
     missing = sorted(set(required) - set(table))
     if missing:
         raise ConfigError(f"{label} lacks field(s) {missing}")
@@ -121,6 +146,13 @@ def integer(where: str, value, low: int | None = None, high: int | None = None) 
 def probability(where: str, value) -> float:
     """A number in [0, 1]."""
     return number(where, value, low=0, high=1)
+
+
+def growth(where: str, value) -> float:
+    """A covariance growth over a missed detection: the paper's chi^-1, a number >= 1
+    (fusion_opt's `growth`; chi = 1 / growth)."""
+    return number(where, value, low=1, why="the paper's chi^-1, the covariance growth over "
+                  "a missed detection")
 
 
 def table(value, where: str, rules: dict) -> dict:
@@ -176,7 +208,7 @@ def build(cls, table: dict, section: str):
     unknown = sorted(set(table) - set(defaults))
     if unknown:
         raise ConfigError(f"[{section}] has unknown field(s) {unknown}; known: "
-                          f"{sorted(defaults)}")
+                          f"{sorted(defaults)}{renamed_hint(unknown)}")
     for key, value in table.items():
         _like(f"{section}.{key}", value, defaults[key])
     try:

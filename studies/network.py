@@ -80,6 +80,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib import colormaps
+from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 import fusion_opt as fo
@@ -87,8 +88,7 @@ from trackers import metrics, rbmcda
 from trackers.scenarios import CrossingConfig, MultiTargetData, simulate_crossing
 
 from . import config as configs
-from . import stats
-from .plotting import log_axes, new_figure, save
+from . import plotting, stats
 from .runner import FIGURE_RUN
 
 POSITION = [0, 1]  # position components of the state [x, y, vx, vy]
@@ -98,6 +98,8 @@ MONITOR = "RBMCDA"  # the rule column of a monitoring node's row
 RULE_METHODS = ("bci", "mbci", "naive", "fast-ci", "ifci")  # rules fusing groups of any size
 CI_FAMILY = ("bci", "mbci")
 THROUGHPUT = "throughput.json"
+# tables of named entries: a --config's replaces the default's whole (config.load)
+NAMED = ("network.level1", "network.level2", "rules")
 
 
 # ---------------------------------------------------------------------- configuration
@@ -132,7 +134,7 @@ BENCHMARK = {
     "p_detect": lambda w, x: [configs.probability(f"{w}[{i}]", v)
                               for i, v in enumerate(configs.items(w, x, length=2))],
     "noise_sd": _positive, "spacing": _positive, "threshold": _positive,
-    "growth": lambda w, x: configs.number(w, x, low=1), "warmup": _count, "steps": _count,
+    "growth": configs.growth, "warmup": _count, "steps": _count,
     "backend": lambda w, x: configs.choice(w, x, fo.BACKENDS),
     "criterion": lambda w, x: configs.choice(w, x, ("trace", "logdet")),
     "association": lambda w, x: configs.choice(w, x, ("nearest", "assignment")),
@@ -154,8 +156,7 @@ def check(config: dict) -> None:
     configs.backend("backend", config["backend"], nodes=width)
     _check_rules(config["rules"])
     fusion = configs.fields(config["fusion"], "fusion", ("growth",))
-    configs.number("fusion.growth", fusion["growth"], low=1,
-                   why="the paper's chi^-1, the covariance growth over a missed detection")
+    configs.growth("fusion.growth", fusion["growth"])
     configs.table(config["metrics"], "metrics", METRICS)
     _check_figure(config)
     bm = configs.table(config["benchmark"], "benchmark", BENCHMARK)
@@ -465,7 +466,7 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     if throughput is not None:
         lines += _throughput_table(config, throughput)
         stats.write_rows(out / "network_throughput.csv", _throughput_rows(throughput))
-        _throughput_figure(throughput, out)
+        _throughput_figure(config, throughput, out)
     (out / "network.md").write_text("\n".join(lines) + "\n")
 
 
@@ -494,26 +495,34 @@ def _figure_note(config, figure) -> list[str]:
 
 
 def _tracks_figure(config, figure, out: Path) -> None:
-    """One panel per node of [figure]: its estimates coloured by id over the true paths
-    (black), and a last panel with the number of targets over time."""
-    nodes = figure["nodes"]
-    fig, axes = new_figure(1, len(nodes) + 1, width=5.0 * (len(nodes) + 1))
+    """One panel per node of [figure]: its estimates coloured by fused id over the true
+    paths (black, with their starts and directions), and a last panel with the number of
+    targets over time."""
+    nodes, rule = figure["nodes"], config["figure"]["rule"]
+    fig, axes = plotting.panels(1, len(nodes) + 1, width=5.4 * (len(nodes) + 1), height=6.0)
     cmap = colormaps["tab20"]  # 20 colours, cycled over the ids
     for ax, (node, d) in zip(axes[:-1], nodes.items(), strict=True):
-        for path in figure["paths"]:
-            path = np.array(path).reshape(-1, 2)
-            ax.plot(path[:, 0], path[:, 1], "k-", lw=0.8)
+        for xy in figure["paths"]:
+            plotting.path(ax, xy, at=(0.3,), lw=0.8)  # before the crossings
         r = np.array(d["rows"]).reshape(-1, 4)
-        ax.scatter(r[:, 2], r[:, 3], s=3, c=cmap(r[:, 1].astype(int) % cmap.N))
-        ax.set(aspect="equal", title=f"{config['figure']['rule']} {node}: "
-               f"{len(np.unique(r[:, 1]))} fused ids, {d['switches']} id switches")
+        ax.scatter(r[:, 2], r[:, 3], s=4, c=cmap(r[:, 1].astype(int) % cmap.N), zorder=2)
+        plotting.trajectory_axes(ax, f"{rule} {node}: {len(np.unique(r[:, 1]))} fused ids, "
+                                     f"{d['switches']} id switches")
     ax = axes[-1]
-    ax.plot(figure["times"], figure["n_alive"], "k-", label="truth")
-    for node, d in nodes.items():
-        ax.plot(figure["times"], d["counts"], lw=1, label=f"{config['figure']['rule']} {node}")
-    ax.set(xlabel="time (s)", title="number of targets")
-    ax.legend(fontsize=8)
-    save(fig, out / "network_tracks.png")
+    ax.plot(figure["times"], figure["n_alive"], color="black", lw=2.6, alpha=0.45,
+            drawstyle="steps-post", label="true number of targets")
+    for i, (node, d) in enumerate(nodes.items()):
+        ax.plot(figure["times"], d["counts"], drawstyle="steps-post", color=f"C{i}",
+                ls=("--", ":", "-.")[i % 3], lw=1.3, label=f"estimated by {rule} {node}")
+    ax.set(xlabel="time (s)", ylabel="number of targets (tracks reported)")
+    ax.set_title("number of targets", fontsize=10)
+    ids = Line2D([], [], ls="none", marker="o", ms=4, color=cmap(0),
+                 label="fused estimates (means; colour: fused id, 20 colours cycled)")
+    plotting.legend_below(fig, plotting.path_handles(lw=0.8) + [ids] + ax.get_lines(),
+                          ncol=3)
+    plotting.run_title(fig, f"Network example: fused tracks under {rule}", FIGURE_RUN,
+                       config["seed"])
+    plotting.save(fig, out / "network_tracks.png")
 
 
 def _throughput(out: Path) -> dict | None:
@@ -544,21 +553,26 @@ def _throughput_table(config, tp: dict) -> list[str]:
     return lines + ["", "![throughput](network_throughput.png)"]
 
 
-def _throughput_figure(tp: dict, out: Path) -> None:
+def _throughput_figure(config, tp: dict, out: Path) -> None:
     """Latency (median solid, p90 dotted) against sources and against targets, log-log."""
-    fig, axes = new_figure(1, 2, width=10)
-    for ax, sweep, label in ((axes[0], "vs_sources", "sources"),
-                             (axes[1], "vs_targets", "targets")):
+    fig, axes = plotting.panels(1, 2, width=11, height=5.0)
+    bm = config["benchmark"]
+    for ax, sweep, label, fixed in (
+            (axes[0], "vs_sources", "sources", f"{bm['targets_at_sources']} targets"),
+            (axes[1], "vs_targets", "targets", f"{bm['sources_at_targets']} sources")):
         for colour, (method, cells) in zip(colormaps["tab10"].colors, tp[sweep].items(),
                                            strict=False):
             sizes = [int(s) for s in cells]
             for key, style in (("median_ms", "o-"), ("p90_ms", "x:")):
                 ax.plot(sizes, [c[key] for c in cells.values()], style, color=colour,
                         label=f"{method} {key[:-3]}")
-        log_axes(ax, sizes, label)
+        plotting.log_axes(ax, sizes, f"number of {label}")
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 1, 2, 5, 10, ...
         ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         ax.yaxis.set_minor_formatter(NullFormatter())
-        ax.set(ylabel="ms per step", title=f"latency against the number of {label}")
-        ax.legend(fontsize=8)
-    save(fig, out / "network_throughput.png")
+        ax.set(ylabel="latency of one step (ms)")
+        ax.set_title(f"latency against the number of {label} ({fixed})", fontsize=10)
+    plotting.legend_below(fig, axes[0].get_lines())
+    fig.suptitle(f"One processing node: latency per step ({tp['steps']} timed steps per "
+                 f"point, synthetic reports of seed {config['seed']})", fontsize=11)
+    plotting.save(fig, out / "network_throughput.png")

@@ -2,7 +2,8 @@
 
 Static case: N nodes estimate one state (dimension n, truth 0). Node i detects with p_i
 ~ U[p_center -+ spread / 2]; it has missed k_i ~ Geometric(p_i) - 1 recent scans, so its
-true and reported covariance is P_i = B_i (chi_true^-1)^k_i (B_i a random base covariance).
+true and reported covariance is P_i = B_i growth_true^k_i (B_i a random base covariance;
+growth is the paper's chi^-1 >= 1, the covariance growth over a missed scan).
 Errors e_i = c + u_i share one common error c ~ N(0, C), C = rho lam I with lam the
 smallest eigenvalue of all P_i, and add independent u_i ~ N(0, P_i - C): the joint
 covariance S has blocks S_ij = C, S_ii = P_i (rho = 0: independent; rho = 1: the largest
@@ -28,15 +29,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from matplotlib.patches import Patch
+from matplotlib.ticker import FuncFormatter
 
 import fusion_opt as fo
 from trackers import kalman, metrics
 from trackers.models import turn_model
 
 from . import config as configs
-from . import stats
-from .plotting import log_axes, new_figure, save
+from . import plotting, stats
 
+NAMED = ("sweeps",)  # a --config's [sweeps] replaces the default's whole (config.load)
 RULES = {
     "naive": {"method": "naive"},
     "BCI trace": {"method": "bci", "criterion": "trace"},
@@ -68,8 +71,8 @@ STATIC = {  # field of [static] -> its check
     "N": lambda w, x: configs.integer(w, x, low=2),
     "p_center": configs.probability, "spread": lambda w, x: configs.number(w, x, low=0),
     "p_min": lambda w, x: configs.number(w, x, high=1, above=0),
-    "rho": configs.probability, "chi_inv_true": _growth, "reported_share": configs.probability,
-    "chi_inv_assumed": _growth, "max_misses": lambda w, x: configs.integer(w, x, low=0),
+    "rho": configs.probability, "growth_true": _growth, "reported_share": configs.probability,
+    "growth_assumed": _growth, "max_misses": lambda w, x: configs.integer(w, x, low=0),
     "base_log10": _log10_range, "draws": lambda w, x: configs.integer(w, x, low=1),
 }
 DYNAMIC = {
@@ -81,7 +84,7 @@ DYNAMIC = {
     "q": lambda w, x: configs.number(w, x, above=0),
     "r": lambda w, x: configs.number(w, x, above=0),
     "p_center": configs.probability, "spread": lambda w, x: configs.number(w, x, low=0),
-    "p_min": lambda w, x: configs.number(w, x, high=1, above=0), "chi_inv_assumed": _growth,
+    "p_min": lambda w, x: configs.number(w, x, high=1, above=0), "growth_assumed": _growth,
     "threshold": lambda w, x: configs.number(w, x, above=0),
 }
 
@@ -125,7 +128,8 @@ def _check_sweep(static: dict, name: str, spec) -> list[int]:
         where += ".values"
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
-                                  f"{list(STATIC)}); give a table {{field, values, fixed}}")
+                                  f"{list(STATIC)}); give a table {{field, values, fixed}}"
+                                  + configs.renamed_hint([name]))
     field, values, fixed = sweep_spec(name, spec)
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)
@@ -154,7 +158,7 @@ def static_case(cfg: dict, rng) -> dict:
     base = 0.5 * (base + np.swapaxes(base, -1, -2))
 
     def grown(k):
-        return base * (cfg["chi_inv_true"] ** k)[:, None, None]
+        return base * (cfg["growth_true"] ** k)[:, None, None]
 
     true_covs = grown(misses)
     common = rho * np.linalg.eigvalsh(true_covs).min() * np.eye(n)
@@ -180,13 +184,14 @@ def draw_errors(case: dict, draws: int, rng) -> np.ndarray:
             + np.einsum("iab,dib->dia", case["own_root"], z[:, 1:]))
 
 
-def fuse_rule(name: str, means, covs, *, p, chi, backend, cross=None, batch=False):
-    """One fusion by rule `name` of RULES (chi = 1 / chi_inv_assumed for MBCI); with
-    batch=True, B of them at once by `fuse_batch` (means (B, N, n), cross (B, N, N, n, n))."""
+def fuse_rule(name: str, means, covs, *, p, growth, backend, cross=None, batch=False):
+    """One fusion by rule `name` of RULES (MBCI with p_detect p and growth, the growth it
+    assumes); with batch=True, B of them at once by `fuse_batch` (means (B, N, n), cross
+    (B, N, N, n, n))."""
     spec = dict(RULES[name])
     method = spec.pop("method")
     if method == "mbci":
-        spec.update(p_detect=p, chi=chi)
+        spec.update(p_detect=p, growth=growth)
     if method == "known-cross":
         spec["cross"] = cross
     if method in OPTIMISED:
@@ -194,7 +199,7 @@ def fuse_rule(name: str, means, covs, *, p, chi, backend, cross=None, batch=Fals
     return (fo.fuse_batch if batch else fo.fuse)(means, covs, method=method, **spec)
 
 
-def gains(name: str, result, case: dict, chi: float) -> np.ndarray:
+def gains(name: str, result, case: dict, growth: float) -> np.ndarray:
     """K (N, n, n) of a rule's fused estimate, from its result (independent of the rule's
     code: CI family K_i = P w_i s_i Y_i; naive K_i = P Y_i; BLUE K = P H^T S^-1)."""
     covs = case["covs"]
@@ -207,7 +212,8 @@ def gains(name: str, result, case: dict, chi: float) -> np.ndarray:
         return P @ np.swapaxes(X, -1, -2)
     if name == "naive":
         return P @ Ys
-    s = fo.detection_scales(case["p"], chi) if name.startswith("MBCI") else np.ones(N)
+    s = fo.detection_scales(case["p"], growth=growth) if name.startswith("MBCI") \
+        else np.ones(N)
     return P @ (result.weights[:, None, None] * s[:, None, None] * Ys)
 
 
@@ -217,16 +223,16 @@ def static_scores(cfg: dict, rng, backend: str) -> dict:
     draws = cfg["draws"]
     e = draw_errors(case, draws, rng)
     S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
-    chi = 1.0 / cfg["chi_inv_assumed"]
+    growth = cfg["growth_assumed"]
     out = {}
     for name in RULES:
         t0 = time.perf_counter()
         # the known-cross optimum is told the truth: the true joint covariance
         covs = case["true_covs"] if name == "known cross" else case["covs"]
-        r = fuse_rule(name, np.zeros((N, n)), covs, p=case["p"], chi=chi, backend=backend,
-                      cross=case["cross"])
+        r = fuse_rule(name, np.zeros((N, n)), covs, p=case["p"], growth=growth,
+                      backend=backend, cross=case["cross"])
         wall = time.perf_counter() - t0
-        K = gains(name, r, case, chi)
+        K = gains(name, r, case, growth)
         Kf = np.concatenate(K, axis=1)  # (n, N n)
         true_cov = Kf @ S @ Kf.T
         err = np.einsum("iab,dib->da", K, e)
@@ -281,7 +287,7 @@ def fusion_centre(name: str, N: int, dcfg: dict, p, backend: str) -> fo.Processi
     threshold is set so far above any error that every step forms one group."""
     spec = dict(RULES[name])
     if spec["method"] == "mbci":
-        spec.update(p_detect=dict(enumerate(p)), chi=1.0 / dcfg["chi_inv_assumed"])
+        spec.update(p_detect=dict(enumerate(p)), growth=dcfg["growth_assumed"])
     if spec["method"] in OPTIMISED:
         spec["backend"] = backend
     return fo.ProcessingNode(range(N), threshold=dcfg["threshold"], min_sources=N,
@@ -328,7 +334,7 @@ def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
 
 def _one_track(fused: fo.Estimates, name: str) -> fo.Estimates:
     if len(fused) != 1:
-        raise RuntimeError(f"nnode: the fusion centre {name!r} did not join the N estimates "
+        raise RuntimeError(f"the fusion centre {name!r} did not join the N estimates "
                            f"of the one target (dynamic.threshold too small?)")
     return fused
 
@@ -550,29 +556,65 @@ def _scaling_table(out: Path) -> list[str]:
     return lines
 
 
+# a colour, marker and line per rule: rules that coincide (fast CI, IFCI and known cross
+# in MSE; the BCI and MBCI pairs) stay apart by their markers and dashes
+RULE_STYLE = {rule: {"color": f"C{i}", "marker": "osD^vPX*"[i], "ms": 4.5,
+                     "fillstyle": "none", "ls": ("-", "--", ":", "-.")[i % 4], "lw": 1.3}
+              for i, rule in enumerate(RULES)}
+
+
 def _figures(config, results, out, band) -> None:
     Ns = list(results[0]["static"]["N"])
     x = [int(v) for v in Ns]
-    fig, axes = new_figure(1, 2, width=12)
+    fig, axes = plotting.panels(1, 3, width=16, height=5.6)
+    mse, excess, anees = axes
+    best = np.array([_summary(results, ("static", "N", v), "known cross", "mse")[0]
+                     for v in Ns])
     for rule in RULES:
-        for ax, key in zip(axes, ("mse", "anees"), strict=True):
+        for ax, key in ((mse, "mse"), (anees, "anees")):
             m = np.array([_summary(results, ("static", "N", v), rule, key) for v in Ns])
-            ax.plot(x, m[:, 0], marker="o", ms=3, label=rule)
-            ax.fill_between(x, m[:, 1], m[:, 2], alpha=0.15)
-    axes[1].axhspan(*band, color="grey", alpha=0.2, label="chi-square 95% band")
-    for ax, label in zip(axes, ("MSE", "ANEES"), strict=True):
-        log_axes(ax, x, "N (nodes)")
+            ax.plot(x, m[:, 0], label=rule, **RULE_STYLE[rule])
+            ax.fill_between(x, m[:, 1], m[:, 2], color=RULE_STYLE[rule]["color"], alpha=0.1,
+                            lw=0)
+            if key == "mse":
+                excess.plot(x, 100 * (m[:, 0] / best - 1), **RULE_STYLE[rule])
+    anees.axhspan(*band, color="black", alpha=0.12, lw=0)
+    n = config["static"]["n"]
+    for ax, label in ((mse, f"MSE of the fused estimate (state units², n = {n})"),
+                      (anees, f"ANEES ({n} dof: {n} if consistent)")):
+        plotting.log_axes(ax, x, "N (nodes)")
         ax.set_ylabel(label)
-    axes[0].legend(fontsize=7)
-    save(fig, out / "nnode_mse_anees_vs_N.png")
+    for axis in (mse.yaxis, anees.yaxis):  # 0.6, 2, 4 rather than 6 x 10^-1, 2 x 10^0
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if
+                                               f"{v:.1g}"[0] in "2346" else ""))
+    plotting.log_axes(excess, x, "N (nodes)")
+    excess.set_yscale("symlog", linthresh=1.0)  # 0-1% linear, logarithmic above
+    excess.set_ylim(bottom=-0.2)
+    excess.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    excess.set_ylabel("mean MSE above known cross's (%)")
+    for ax, title in ((mse, "MSE"), (excess, "distance to the optimum, known cross "
+                                            "(y linear below 1%)"), (anees, "ANEES")):
+        ax.set_title(title, fontsize=10)
+    bands = [Patch(color="C0", alpha=0.25, lw=0, label="shaded: 95% interval of the "
+                   "mean over runs (bootstrap), in the rule's colour"),
+             Patch(color="black", alpha=0.12, lw=0, label=f"grey: 95% band of the ANEES "
+                   f"of a consistent estimate ({band[0]:.2f}-{band[1]:.2f})")]
+    plotting.legend_below(fig, axes[0].get_lines() + bands, ncol=5)
+    fig.suptitle(f"N-node static case: MSE and ANEES against N, the other fields as "
+                 f"[static] ({len(results)} runs, seed {config['seed']})", fontsize=11)
+    plotting.save(fig, out / "nnode_mse_anees_vs_N.png")
     sc = _scaling(out)
     if sc is not None:
-        fig, axes = new_figure(1, 1, width=6)
-        for backend, times in sc["vs_N"].items():
+        fig, axes = plotting.panels(1, 1, width=6.5, height=5.4)
+        for i, (backend, times) in enumerate(sc["vs_N"].items()):
             axes[0].plot([int(k) for k in times], [1e3 * t for t in times.values()],
-                         marker="o", label=backend)
-        log_axes(axes[0], [int(k) for k in next(iter(sc["vs_N"].values()))],
-                 "N (nodes), n = 4")
-        axes[0].set_ylabel("median time per solve (ms)")
-        axes[0].legend()
-        save(fig, out / "nnode_time_vs_N.png")
+                         color=f"C{i}", marker="osD^v"[i % 5], fillstyle="none",
+                         label=backend)
+        plotting.log_axes(axes[0], [int(k) for k in next(iter(sc["vs_N"].values()))],
+                          "N (nodes), n = 4")
+        axes[0].set_ylabel("median wall time per solve (ms)")
+        plotting.legend_below(fig, axes[0].get_lines())
+        fig.suptitle(f"BCI (trace) solve time against N: median of {sc['repeats']} random "
+                     f"problems per point (seed {config['seed']})", fontsize=10)
+        plotting.save(fig, out / "nnode_time_vs_N.png")

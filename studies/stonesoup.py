@@ -123,6 +123,7 @@ HEADERS = {"ospa": "OSPA (m)", "gospa": "GOSPA (m)", "card_err": "card. error",
            "rmse": "pos. RMSE (m)", "anees": "ANEES (4-dof)", "in_band": "runs in band",
            "trace": "fused tr P", "us_per_fusion": "µs / fusion"}
 PAIRED = ("ospa", "gospa", "rmse", "trace")
+NAMED = ("rules",)  # a --config's [rules] replaces the default's whole (config.load)
 
 
 # ---------------------------------------------------------------------- configuration

@@ -2,7 +2,7 @@
 
 Each run simulates the scenario (trackers.scenarios.simulate_table1), runs the KF baseline
 and the RBPF at nodes a and b, fuses the two RBPF estimates at every step with CI (trace),
-modified CI (trace, p_D of each node, chi^-1 = 1 + dt), naive fusion and BCI (log-det), and
+modified CI (trace, p_D of each node, growth chi^-1 = 1 + dt), naive fusion and BCI (log-det), and
 scores each with the full-state MSE and MNCM (the paper's columns, DESIGN §3), the position
 ones, and ANEES. Run 0 also returns what the figures draw of it (`figure_data`), which the
 store keeps beside its scores, so `report` draws the figures without simulating again.
@@ -13,14 +13,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.lines import Line2D
 
 import fusion_opt as fo
 from trackers import kalman, metrics, rbpf
 from trackers.scenarios import Table1Config, simulate_table1
 
 from . import config as configs
-from . import stats
-from .plotting import new_figure, save
+from . import plotting, stats
 from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
@@ -50,9 +50,8 @@ def check(config: dict) -> None:
     if len(scenario(config).p_detect) != 2:
         raise configs.ConfigError("scenario.p_detect must hold 2 detection probabilities "
                                   f"(nodes a and b), got {config['scenario']['p_detect']!r}")
-    fusion = configs.fields(config["fusion"], "fusion", ("chi_inv", "window"))
-    configs.number("fusion.chi_inv", fusion["chi_inv"], low=1,
-                   why="the paper's chi^-1, the covariance growth over a missed detection")
+    fusion = configs.fields(config["fusion"], "fusion", ("growth", "window"))
+    configs.growth("fusion.growth", fusion["growth"])
     start, end = (configs.number(f"fusion.window[{i}]", t) for i, t in
                   enumerate(configs.items("fusion.window", fusion["window"], length=2)))
     if end < start:
@@ -85,10 +84,9 @@ def _fused(config, sc, a, b) -> tuple[dict, dict]:
     means = np.stack([a[0], b[0]], axis=1)  # (T, 2, n)
     covs = np.stack([a[1], b[1]], axis=1)  # (T, 2, n, n)
     backend = config["backend"]
-    chi = 1.0 / config["fusion"]["chi_inv"]
     rules = {"CI": dict(method="ci", backend=backend), "naive": dict(method="naive"),
              "modified CI": dict(method="mbci", backend=backend, p_detect=list(sc.p_detect),
-                                 chi=chi),
+                                 growth=config["fusion"]["growth"]),
              "BCI logdet": dict(method="bci", backend=backend, criterion="logdet")}
     results = {row: fo.fuse_batch(means, covs, **kw) for row, kw in rules.items()}
     steps = np.unique(np.linspace(0, len(means) - 1, config["check"]["steps"]).astype(int))
@@ -200,43 +198,78 @@ def _check_note(config, results) -> str:
 def _figures(config, figure, out) -> None:
     """The paper's figures, from the figure data of one run (see figure_data)."""
     truth = np.array(figure["truth"]).reshape(-1, 2)
-    _measurements_figure(truth, figure["nodes"], out / "table1_measurements.png")
-    _paths_figure(truth, figure["paths"], out / "table1_paths.png")
+    seed, p_detect = config["seed"], config["scenario"]["p_detect"]
+    _measurements_figure(truth, figure["nodes"], p_detect, seed,
+                         out / "table1_measurements.png")
+    _paths_figure(truth, figure["paths"], seed, out / "table1_paths.png")
     _covnorm_figure(np.array(figure["times"]), figure["covnorm"], config["fusion"]["window"],
-                    out / "table1_covnorm.png")
+                    seed, out / "table1_covnorm.png")
 
 
-def _measurements_figure(truth, nodes, path) -> None:
-    fig, axes = new_figure(1, len(nodes), width=10)
-    for ax, node, name in zip(axes, nodes, "ab", strict=True):
-        ax.plot(truth[:, 0], truth[:, 1], "k-", label="target path")
-        for key, style, ms, color, label in (("target", "o", 2, "tab:blue", "target meas."),
-                                             ("clutter", "x", 3, "tab:pink", "clutter")):
-            ax.plot(*np.array(node[key]).reshape(-1, 2).T, style, ms=ms, color=color,
-                    label=label)
-        ax.set_title(f"node {name}")
-    axes[0].legend(loc="best", fontsize=8)
-    save(fig, path)
+MEASURED = {"target": dict(marker="o", ms=2.5, color="tab:blue", ls="none",
+                           label="target measurement"),
+            "clutter": dict(marker="x", ms=3.5, color="tab:gray", ls="none", mew=0.8,
+                            label="clutter")}
 
 
-def _paths_figure(truth, paths, path) -> None:
-    fig, axes = new_figure(1, len(PATH_ROWS), width=12)
+def _measurements_figure(truth, nodes, p_detect, seed, path) -> None:
+    fig, axes = plotting.panels(1, len(nodes), width=11, height=5.2)
+    for ax, node, name, p in zip(axes, nodes, "ab", p_detect, strict=True):
+        for key, style in MEASURED.items():
+            ax.plot(*np.array(node[key]).reshape(-1, 2).T, **style)
+        plotting.path(ax, truth, lw=1.4)
+        plotting.trajectory_axes(ax, f"node {name} (p_D = {p})")
+    handles = plotting.path_handles(lw=1.4) + [
+        Line2D([], [], **style) for style in MEASURED.values()]
+    plotting.legend_below(fig, handles)
+    plotting.run_title(fig, "Table 1: the target's path and each node's measurements",
+                       FIGURE_RUN, seed)
+    plotting.save(fig, path)
+
+
+def _paths_figure(truth, paths, seed, path) -> None:
+    fig, axes = plotting.panels(1, len(PATH_ROWS), width=13, height=4.9)
     for ax, row in zip(axes, PATH_ROWS, strict=True):
-        ax.plot(truth[:, 0], truth[:, 1], "r--", label="target path")
-        ax.plot(*np.array(paths[row]).reshape(-1, 2).T, "k-", lw=1, label="estimate")
-        ax.set_title(row)
-    axes[0].legend(loc="best", fontsize=8)
-    save(fig, path)
+        plotting.path(ax, truth, color="tab:red", ls="--", lw=1.4)
+        ax.plot(*np.array(paths[row]).reshape(-1, 2).T, "k-", lw=0.9)
+        plotting.trajectory_axes(ax, row)
+    handles = plotting.path_handles(color="tab:red", ls="--", lw=1.4) + [
+        Line2D([], [], color="black", lw=0.9, label="estimate (mean)")]
+    plotting.legend_below(fig, handles, ncol=3)
+    plotting.run_title(fig, "Table 1: estimated paths of the RBPFs and of modified CI",
+                       FIGURE_RUN, seed)
+    plotting.save(fig, path)
 
 
-def _covnorm_figure(times, covnorm, window, path) -> None:
-    fig, axes = new_figure(1, 1, width=6)
+# CI, modified CI and BCI logdet nearly coincide: CI wide underneath, the others dashed
+# and dotted over it with markers, and their differences to CI in a panel of their own
+COVNORM_STYLE = {
+    "RBPF a": dict(color="tab:blue", lw=1.0), "RBPF b": dict(color="tab:orange", lw=1.0),
+    "CI": dict(color="black", lw=2.6, alpha=0.45),
+    "modified CI": dict(color="tab:red", lw=1.2, ls="--", marker="^", ms=3.5, markevery=6),
+    "BCI logdet": dict(color="tab:green", lw=1.2, ls=":", marker="o", ms=3.5,
+                       mfc="none", markevery=(3, 6)),
+    "naive": dict(color="tab:purple", lw=1.0, ls="-."),
+}
+
+
+def _covnorm_figure(times, covnorm, window, seed, path) -> None:
+    """The covariance 2-norm of every fused and node estimate over the window, and a panel
+    per rule that nearly coincides with CI showing its difference to CI."""
+    close = ("modified CI", "BCI logdet")
+    fig, (ax, *diffs) = plotting.panels(1 + len(close), 1, width=8, height=8.6,
+                                        gridspec_kw={"height_ratios": [2.4, 1, 1]})
     sel = (times >= window[0]) & (times <= window[1])
     if not sel.any():  # a shortened run ends before the window: show all of it
         sel[:] = True
     for row in COVNORM_ROWS:
-        axes[0].plot(times[sel], np.array(covnorm[row])[sel], label=row)
-    axes[0].set_xlabel("time (s)")
-    axes[0].set_ylabel("2-norm of covariance")
-    axes[0].legend(fontsize=8)
-    save(fig, path)
+        ax.plot(times[sel], np.array(covnorm[row])[sel], label=row, **COVNORM_STYLE[row])
+    ax.set(xlabel="time (s)", ylabel="2-norm of the covariance\n(full 4x4: m², (m/s)², m²/s)")
+    ci = np.array(covnorm["CI"])[sel]
+    for diff, row in zip(diffs, close, strict=True):
+        diff.axhline(0.0, color="black", lw=2.6, alpha=0.45)
+        diff.plot(times[sel], np.array(covnorm[row])[sel] - ci, **COVNORM_STYLE[row])
+        diff.set(xlabel="time (s)", ylabel=f"{row} minus CI\n(same units)")
+    plotting.legend_below(fig, ax.get_lines(), ncol=3)
+    plotting.run_title(fig, "Table 1: 2-norm of the covariance", FIGURE_RUN, seed)
+    plotting.save(fig, path)

@@ -26,14 +26,14 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from matplotlib.lines import Line2D
 
 import fusion_opt as fo
 from trackers import metrics, rbmcda
 from trackers.scenarios import Table2Config, simulate_table2
 
 from . import config as configs
-from . import stats
-from .plotting import new_figure, save
+from . import plotting, stats
 from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
@@ -46,6 +46,7 @@ PAPER = {"RBMCDA 1": (0.1430, 0.0578), "RBMCDA 2": (0.4716, 0.0616),
          "modified CI 9": (0.0763, 0.0523), "modified CI 10": (0.0799, 0.0493)}
 
 
+NAMED = ("network.neighbours",)  # a --config's table replaces the default's whole
 SHOWN_NODE, SHOWN_PROC = 3, "9"  # the monitoring and processing node the figures show
 
 
@@ -68,9 +69,8 @@ def check(config: dict) -> None:
                     nodes=max(len(m) for m in neighbours.values()))
     configs.choice("network.association", net["association"], ("nearest", "assignment"))
     configs.number("network.threshold", net["threshold"], above=0)
-    fusion = configs.fields(config["fusion"], "fusion", ("chi_inv",))
-    configs.number("fusion.chi_inv", fusion["chi_inv"], low=1,
-                   why="the paper's chi^-1, the covariance growth over a missed detection")
+    fusion = configs.fields(config["fusion"], "fusion", ("growth",))
+    configs.growth("fusion.growth", fusion["growth"])
     metric = configs.fields(config["metrics"], "metrics", ("cutoff", "order"))
     configs.number("metrics.cutoff", metric["cutoff"], above=0)
     configs.number("metrics.order", metric["order"], low=1)
@@ -101,12 +101,13 @@ def _monitoring(sc: Table2Config, rngs) -> dict[str, rbmcda.RBMCDA]:
 
 def _processing(config: dict, sc: Table2Config) -> dict[str, fo.ProcessingNode]:
     """Per processing node p of network.neighbours, "CI p" (BCI, trace) and "modified CI p"
-    (MBCI with each neighbour's p_D and chi = 1 / chi_inv), both over its neighbours."""
-    net, chi = config["network"], 1.0 / config["fusion"]["chi_inv"]
+    (MBCI with each neighbour's p_D and fusion.growth), both over its neighbours."""
+    net, growth = config["network"], config["fusion"]["growth"]
     nodes = {}
     for proc, members in net["neighbours"].items():
         sources = [f"RBMCDA {k}" for k in members]
-        mbci = dict(p_detect={f"RBMCDA {k}": sc.p_detect[k - 1] for k in members}, chi=chi)
+        mbci = dict(p_detect={f"RBMCDA {k}": sc.p_detect[k - 1] for k in members},
+                    growth=growth)
         for row, method, extra in (("CI", "bci", {}), ("modified CI", "mbci", mbci)):
             nodes[f"{row} {proc}"] = fo.ProcessingNode(
                 sources, method=method, backend=config["backend"],
@@ -125,16 +126,19 @@ def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dic
 
 def figure_data(data, est) -> dict:
     """What the figures draw of one run: each target's path while alive, the measurements
-    and RBMCDA estimates (positions) of monitoring node SHOWN_NODE (or the last, if there
-    are fewer), the modified-CI estimates at SHOWN_PROC (if it exists), and the number of
-    targets over time, true and estimated (arrays; read back from the store as lists)."""
+    (target-originated and clutter apart) and RBMCDA estimates (positions) of monitoring
+    node SHOWN_NODE (or the last, if there are fewer), the modified-CI estimates at
+    SHOWN_PROC (if it exists), and the number of targets over time, true and estimated
+    (arrays; read back from the store as lists)."""
     node = min(SHOWN_NODE, len(data.nodes))
+    shown = data.nodes[node - 1]
     rows = {"RBMCDA": f"RBMCDA {node}", "fused": f"modified CI {SHOWN_PROC}"}
     rows = {key: row for key, row in rows.items() if row in est}
     return {"node": node, "proc": SHOWN_PROC, "rows": rows, "times": data.times,
             "n_alive": data.n_alive,
             "paths": [data.truth[j, data.alive[j], :2] for j in range(len(data.truth))],
-            "measurements": data.nodes[node - 1].values,
+            "measurements": {"target": shown.values[shown.origin >= 0],
+                             "clutter": shown.values[shown.origin < 0]},
             "estimates": {key: np.concatenate([e.means[:, :2] for e in est[row]])
                           for key, row in rows.items()},
             "counts": {key: [len(e) for e in est[row]] for key, row in rows.items()}}
@@ -177,7 +181,7 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
                       for key, p in pair.items()])
     (out / "table2.md").write_text(_markdown(config, rows, results))
     if figure is not None:
-        _figures(figure, out)
+        _figures(config, figure, out)
 
 
 def _paired(config, results) -> dict:
@@ -212,33 +216,56 @@ def _markdown(config, rows, results) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _figures(figure, out) -> None:
+MEASURED = {"target": dict(marker="o", ms=2.2, color="tab:blue", ls="none",
+                           label="target measurement"),
+            "clutter": dict(marker="x", ms=3.5, color="tab:gray", ls="none", mew=0.8,
+                            label="clutter")}
+ESTIMATED = {"RBMCDA": dict(marker="o", ms=1.6, color="tab:red", ls="none"),
+             "fused": dict(marker="o", ms=1.6, color="tab:blue", ls="none")}
+COUNTS = {"RBMCDA": dict(color="tab:red", ls="--", lw=1.2),
+          "fused": dict(color="tab:blue", ls=":", lw=1.6)}
+
+
+def _figures(config, figure, out) -> None:
     """The paper's figures from the figure data of one run (see figure_data): node 3
     (paths, measurements, estimates, number of targets) and the fused estimates at node 9."""
     node, proc, est = figure["node"], figure["proc"], figure["estimates"]
     paths = [np.array(p).reshape(-1, 2) for p in figure["paths"]]
-    fig, axes = new_figure(1, 3, width=14)
-    for path in paths:
-        for ax in axes[:2]:
-            ax.plot(path[:, 0], path[:, 1], "k-", lw=1)
-    axes[0].plot(*np.array(figure["measurements"]).reshape(-1, 2).T, "x", ms=3,
-                 color="tab:red")
-    axes[0].set_title(f"targets and measurements, node {node}")
+    fig, axes = plotting.panels(1, 3, width=16, height=5.4,
+                                gridspec_kw={"width_ratios": [1, 1, 1.15]})
+    for ax in axes[:2]:
+        for xy in paths:
+            plotting.path(ax, xy, at=(0.3,))
+    for key, style in MEASURED.items():
+        axes[0].plot(*np.array(figure["measurements"][key]).reshape(-1, 2).T, **style)
+    plotting.trajectory_axes(axes[0], f"targets and measurements, node {node}")
+    handles = plotting.path_handles() + [Line2D([], [], **s) for s in MEASURED.values()]
     if "RBMCDA" in est:
-        axes[1].plot(*np.array(est["RBMCDA"]).reshape(-1, 2).T, "o", ms=1.5, color="tab:red")
-    axes[1].set_title(f"RBMCDA estimates, node {node}")
-    axes[2].plot(figure["times"], figure["n_alive"], "k-", label="truth")
+        axes[1].plot(*np.array(est["RBMCDA"]).reshape(-1, 2).T, **ESTIMATED["RBMCDA"])
+        handles.append(Line2D([], [], **ESTIMATED["RBMCDA"] | {"ms": 4},
+                              label=f"estimates of {figure['rows']['RBMCDA']} (means)"))
+    plotting.trajectory_axes(axes[1], f"RBMCDA estimates, node {node}")
+    ax = axes[2]
+    ax.plot(figure["times"], figure["n_alive"], color="black", lw=2.6, alpha=0.45,
+            drawstyle="steps-post", label="true number of targets")
     for key, counts in figure["counts"].items():
-        axes[2].plot(figure["times"], counts, {"RBMCDA": "r--", "fused": "b:"}[key],
-                     label=figure["rows"][key])
-    axes[2].set_xlabel("time (s)")
-    axes[2].set_title("number of targets")
-    axes[2].legend(fontsize=8)
-    save(fig, out / f"table2_node{node}.png")
+        ax.plot(figure["times"], counts, drawstyle="steps-post", **COUNTS[key],
+                label=f"estimated by {figure['rows'][key]}")
+    ax.set(xlabel="time (s)", ylabel="number of targets (tracks reported)")
+    ax.set_title("number of targets", fontsize=10)
+    ax.yaxis.get_major_locator().set_params(integer=True)
+    plotting.legend_below(fig, handles + ax.get_lines(), ncol=4)
+    plotting.run_title(fig, f"Table 2: monitoring node {node}", FIGURE_RUN, config["seed"])
+    plotting.save(fig, out / f"table2_node{node}.png")
     if "fused" in est:
-        fig, axes = new_figure(1, 1, width=5)
-        for path in paths:
-            axes[0].plot(path[:, 0], path[:, 1], "k-", lw=1)
-        axes[0].plot(*np.array(est["fused"]).reshape(-1, 2).T, "o", ms=1.5, color="tab:blue")
-        axes[0].set_title(f"modified CI, processing node {proc}")
-        save(fig, out / f"table2_node{proc}.png")
+        fig, axes = plotting.panels(1, 1, width=6.5, height=6.6)
+        for xy in paths:
+            plotting.path(axes[0], xy, at=(0.3,))
+        axes[0].plot(*np.array(est["fused"]).reshape(-1, 2).T, **ESTIMATED["fused"])
+        plotting.trajectory_axes(axes[0])
+        plotting.legend_below(fig, plotting.path_handles() + [Line2D(
+            [], [], **ESTIMATED["fused"] | {"ms": 4},
+            label=f"estimates of {figure['rows']['fused']} (means)")], ncol=2)
+        plotting.run_title(fig, f"Table 2: modified CI\nat processing node {proc}",
+                           FIGURE_RUN, config["seed"])
+        plotting.save(fig, out / f"table2_node{proc}.png")

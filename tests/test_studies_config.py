@@ -1,6 +1,8 @@
 """Every configuration error is refused before anything runs or is created: one line,
 naming the study and the field as the user wrote it, no traceback."""
 
+from pathlib import Path
+
 import pytest
 
 from studies import config as configs
@@ -8,10 +10,16 @@ from studies import runner
 from studies.__main__ import STUDIES, _module, main
 
 CASES = [  # (study, TOML file, what the one line must say)
-    ("table1", "[fusion]\nchi_inv = 0.5\n", "table1: fusion.chi_inv must be a finite number "
+    ("table1", "[fusion]\ngrowth = 0.5\n", "table1: fusion.growth must be a finite number "
      ">= 1 (the paper's chi^-1"),
+    ("table1", "[fusion]\ngrowth = nan\n", "fusion.growth must be a finite number >= 1"),
+    ("table1", "[fusion]\nchi_inv = 1.1\n", "unknown field(s) ['chi_inv']; known: ['growth', "
+     "'window'] (chi_inv is now growth"),
     ("table1", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("table1", "[fusion]\nchi = 2.0\n", "[fusion] has unknown field(s) ['chi']"),
+    ("table1", "[scenario]\ndt = nan\n", "scenario.dt must be a finite number, got nan"),
+    ("table1", "[scenario]\nr = inf\n", "scenario.r must be a finite number, got inf"),
+    ("table1", "runs = -3\n", "runs must be an integer >= 1, got -3"),
     ("table1", "fusion = 3\n", "[fusion] must be a table, got 3"),
     ("table1", "[fusion]\nwindow = [15.0, 13.0]\n", "fusion.window must be [start, end]"),
     ("table1", "[fusion]\nwindow = [15.0]\n", "fusion.window must be a list of 2 values"),
@@ -36,23 +44,40 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table2", '[network.neighbours]\n"8" = [1, 1]\n', "names a monitoring node twice"),
     ("table2", "[metrics]\ncutoff = 0\n", "metrics.cutoff must be a finite number > 0"),
     ("table2", "[metrics]\norder = 0.5\n", "metrics.order must be a finite number >= 1"),
-    ("table2", "[fusion]\nchi_inv = 0.99\n", "fusion.chi_inv must be a finite number >= 1"),
+    ("table2", "[fusion]\ngrowth = 0.99\n", "fusion.growth must be a finite number >= 1"),
+    ("table2", "[network]\nneighbours = {}\n", "network.neighbours must be a table naming at "
+     "least one processing node, got {}"),
+    ("table2", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("table2", "[scenario]\nresample_threshold = 1.5\n", "resample_threshold must be a "
      "probability"),
     ("table2", 'backend = "closed-form"\n', "'closed-form' fuses two estimates only"),
     ("table2", '[[scenario.targets]]\nx0 = [0, 1, "a", 0]\nbirth = 0.0\ndeath = 1.0\n',
      "scenario.targets[0].x0[2] must be a finite number"),
-    ("nnode", "[sweeps]\nrho = [0.0, 1.5]\n", "sweeps.rho[1] must be a finite number >= 0 "
-     "and <= 1, got 1.5"),
-    ("nnode", '[sweeps.bad]\nfield = "nope"\nvalues = [1]\n', "sweeps.bad.field must be one"),
-    ("nnode", "[sweeps]\nfoo = [1, 2]\n", "sweeps.foo sweeps no field of [static]"),
-    ("nnode", "[sweeps.chi_stale]\nfixed = { reported_share = 2.0 }\n",
-     "sweeps.chi_stale.fixed.reported_share must be a finite number >= 0 and <= 1"),
-    ("nnode", "[static]\nchi_inv_assumed = 0.5\n", "static.chi_inv_assumed must be a finite "
+    ("nnode", "[sweeps]\nN = [2]\nrho = [0.0, 1.5]\n", "sweeps.rho[1] must be a finite "
+     "number >= 0 and <= 1, got 1.5"),
+    ("nnode", "[sweeps]\nrho = [0.0]\n", "[sweeps] must be a table with a sweep over N"),
+    ("nnode", '[sweeps]\nN = [2]\n[sweeps.bad]\nfield = "nope"\nvalues = [1]\n',
+     "sweeps.bad.field must be one"),
+    ("nnode", "[sweeps]\nN = [2]\nfoo = [1, 2]\n", "sweeps.foo sweeps no field of [static]"),
+    ("nnode", "[sweeps]\nN = [2]\nchi_inv_assumed = [1.5]\n", "(chi_inv_assumed is now "
+     "growth_assumed"),
+    ("nnode", '[sweeps]\nN = [2]\n[sweeps.stale]\nfield = "growth_assumed"\nvalues = [1.5]\n'
+     "fixed = { reported_share = 2.0 }\n",
+     "sweeps.stale.fixed.reported_share must be a finite number >= 0 and <= 1"),
+    ("nnode", "[static]\ngrowth_assumed = 0.5\n", "static.growth_assumed must be a finite "
      "number >= 1"),
+    ("nnode", "[static]\nchi_inv_true = 1.5\n", "(chi_inv_true is now growth_true"),
+    ("nnode", "[static]\nrho = nan\n", "static.rho must be a finite number >= 0 and <= 1"),
+    ("nnode", "runs = -1\n", "runs must be an integer >= 1, got -1"),
+    ("nnode", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("nnode", "[dynamic]\nburn_in = 500\n", "dynamic.burn_in must be below dynamic.steps"),
     ("nnode", '[scaling]\nbackends = ["gurobi"]\n', "scaling.backends[0] must be one of"),
     ("nnode", '[scaling]\nbackends = ["closed-form"]\n', "'closed-form' fuses two estimates"),
+    ("network", "[fusion]\ngrowth = 0.5\n", "fusion.growth must be a finite number >= 1"),
+    ("network", "[benchmark]\ngrowth = nan\n", "benchmark.growth must be a finite number >= 1"),
+    ("network", "[rules]\n", "[rules] must name at least one fusion rule, got {}"),
+    ("network", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
+    ("network", "seed = -2\n", "seed must be an integer >= 0, got -2"),
     ("backends", 'criteria = ["trace", "det"]\n', "criteria[1] must be one of"),
     ("backends", "instances = 0\n", "instances must be an integer >= 1"),
     ("backends", 'backends = ["gurobi"]\n', "backends[0] must be one of"),
@@ -125,3 +150,45 @@ def test_a_group_checks_every_store_before_running_any_study(tmp_path, capsys):
 def test_the_default_and_quick_configurations_pass_their_check(name):
     for quick in (False, True):
         _module(name).check(configs.load(name, quick=quick))
+
+
+def test_a_table_of_named_entries_is_replaced_whole_and_others_merge(tmp_path):
+    """What a --config names is what runs: its processing nodes, rules or sweeps replace the
+    default's (merged, the default's would run too); a table of fields merges."""
+    path = tmp_path / "c.toml"
+    path.write_text('[network.neighbours]\n"8" = [1, 2]\n[network]\nthreshold = 0.2\n')
+    net = configs.load("table2", path=path)["network"]
+    assert net == {"neighbours": {"8": [1, 2]}, "association": "nearest", "threshold": 0.2}
+    path.write_text('[rules]\nmine = { method = "bci", criterion = "logdet" }\n'
+                    '[figure]\nrule = "mine"\n')
+    config = configs.load("network", path=path)
+    assert list(config["rules"]) == ["mine"] and config["network"]["level1"]["A"]
+    _module("network").check(config)
+    path.write_text("[sweeps]\nN = [2, 4]\n[static]\nN = 4\n")
+    config = configs.load("nnode", path=path)
+    assert config["sweeps"] == {"N": [2, 4]} and config["static"]["rho"] == 0.5
+
+
+def test_the_growth_factor_has_one_name_in_every_configuration():
+    """growth, the paper's chi^-1 >= 1, as fusion_opt takes it; no chi_inv anywhere."""
+    for name in STUDIES:
+        text = (Path(configs.__file__).parent / "configs" / f"{name}.toml").read_text()
+        assert "chi_inv" not in text, name
+    assert configs.load("table1")["fusion"]["growth"] == 1.025
+    assert configs.load("table2")["fusion"]["growth"] == 1.01
+    assert configs.load("network")["fusion"]["growth"] == 1.05
+    assert configs.load("nnode")["static"]["growth_assumed"] == 1.5
+
+
+def test_the_growth_reaches_the_fusion():
+    """growth = 1 makes modified CI the CI rule exactly; 1.025 does not."""
+    from studies import table1
+
+    config = configs.load("table1")
+    config["scenario"] |= {"n_steps": 30, "n_particles": 3}
+    config["check"]["steps"] = 0
+    seed = runner.seeds(1, 1)[0]
+    for growth, same in ((1.0, True), (1.025, False)):
+        config["fusion"]["growth"] = growth
+        result, _ = table1.run_one(config, 1, seed)
+        assert (result["modified CI"] == result["CI"]) is same

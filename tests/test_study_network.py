@@ -45,11 +45,17 @@ def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
         assert row in table, row
     csv = (folder / "network.csv").read_text().splitlines()
     assert csv[0].startswith("node,rule,level,ospa_mean") and len(csv) == 1 + 16 + 4 * 4
-    (folder / "network.md").unlink()
-    (folder / "network_tracks.png").unlink()
+    tables = {name: (folder / name).read_text() for name in
+              ("network.csv", "network_throughput.csv")}
+    meta = (folder / "meta.json").read_text()
+    for name in ("network.md", "network_tracks.png", *tables):
+        (folder / name).unlink()
     assert main(["report", "network", "--out", str(tmp_path)]) == 0
     assert (folder / "network.md").read_text() == table
+    assert {name: (folder / name).read_text() for name in tables} == tables
     assert (folder / "network_tracks.png").stat().st_size > 0
+    assert (folder / "meta.json").read_text() == meta  # report writes report.json instead
+    assert (folder / "report.json").exists()
 
 
 def test_cli_refuses_a_bad_field_by_name(tmp_path, capsys):

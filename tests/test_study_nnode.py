@@ -17,7 +17,7 @@ draws = 20
 N = [2, 5]
 spread = [0.0, 0.5]
 rho = [0.0, 0.9]
-chi_inv_assumed = [1.0, 2.0]
+growth_assumed = [1.0, 2.0]
 [dynamic]
 N = [3]
 steps = 30
@@ -30,7 +30,13 @@ repeats = 1
 """
 
 
-def test_tiny_study_writes_tables_and_figures(tmp_path):
+SWEEPS = {"N": "N", "spread": "spread", "rho": "rho", "growth_assumed": "growth_assumed"}
+
+
+def test_tiny_study_writes_every_table_as_csv_and_report_rebuilds_it(tmp_path):
+    """nnode.md, a CSV per table (each sweep's MSE, ANEES and consistency, its paired MBCI
+    minus BCI; the dynamic case; the scaling) and the figures; `report` rebuilds them from
+    the store without flags and leaves meta.json alone."""
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY)
     assert main(["run", "nnode", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
@@ -38,11 +44,29 @@ def test_tiny_study_writes_tables_and_figures(tmp_path):
     folder = tmp_path / "nnode"
     text = (folder / "nnode.md").read_text()
     for heading in ("sweep over N", "sweep over rho", "sweep over spread",
-                    "sweep over chi_inv_assumed", "Dynamic", "Scaling"):
+                    "sweep over growth_assumed", "Dynamic", "Scaling"):
         assert heading in text
+    assert "sweep over reported_share" not in text  # [sweeps] of the file replaced the default's
     for name in ("nnode_mse_anees_vs_N.png", "nnode_time_vs_N.png", "scaling.json",
                  "meta.json"):
         assert (folder / name).stat().st_size > 0
+    csvs = {f"nnode_sweep_{s}.csv" for s in SWEEPS} | {
+        f"nnode_sweep_{s}_paired.csv" for s in SWEEPS} | {"nnode_dynamic.csv",
+                                                          "nnode_scaling.csv"}
+    assert {p.name for p in folder.glob("*.csv")} == csvs
+    rows = (folder / "nnode_sweep_rho.csv").read_text().splitlines()
+    assert rows[0].startswith("rho,rule,mse_mean,mse_low,mse_high,anees_mean") and \
+        "consistent_mean" in rows[0] and len(rows) == 1 + 2 * len(nnode.RULES)
+    assert len((folder / "nnode_sweep_N_paired.csv").read_text().splitlines()) == 1 + 2 * 2
+    assert (folder / "nnode_dynamic.csv").read_text().startswith("N,rule,mse_mean")
+    assert "newton" in (folder / "nnode_scaling.csv").read_text()
+    before = {p.name: p.read_bytes() for p in folder.iterdir() if p.suffix in (".md", ".csv")}
+    meta = (folder / "meta.json").read_text()
+    for name in before:
+        (folder / name).unlink()
+    assert main(["report", "nnode", "--out", str(tmp_path)]) == 0
+    assert {name: (folder / name).read_bytes() for name in before} == before
+    assert (folder / "meta.json").read_text() == meta
 
 
 def _static(**over):
@@ -51,14 +75,14 @@ def _static(**over):
 
 def test_naive_equals_known_cross_without_correlation_and_equal_covariances():
     """rho = 0 and identical covariances (no misses, one base): BLUE is the naive rule."""
-    cfg = _static(rho=0.0, chi_inv_true=1.0, N=5)
+    cfg = _static(rho=0.0, growth_true=1.0, N=5)
     rng = np.random.default_rng(0)
     case = nnode.static_case(cfg, rng)
     case["covs"][:] = case["covs"][0]
     case["cross"][:] = 0.0
     case["cross"][np.arange(5), np.arange(5)] = case["covs"]
     means = rng.standard_normal((5, 4))
-    kw = dict(p=case["p"], chi=1.0, backend="newton", cross=case["cross"])
+    kw = dict(p=case["p"], growth=1.0, backend="newton", cross=case["cross"])
     naive = nnode.fuse_rule("naive", means, case["covs"], **kw)
     known = nnode.fuse_rule("known cross", means, case["covs"], **kw)
     np.testing.assert_allclose(naive.mean, known.mean, rtol=1e-10, atol=1e-12)
@@ -67,8 +91,8 @@ def test_naive_equals_known_cross_without_correlation_and_equal_covariances():
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_mbci_equals_bci_when_chi_is_one(seed):
-    cfg = _static(chi_inv_assumed=1.0, draws=10)
+def test_mbci_equals_bci_when_the_growth_is_one(seed):
+    cfg = _static(growth_assumed=1.0, draws=10)
     out = nnode.static_scores(cfg, np.random.default_rng(seed), "newton")
     for crit in ("trace", "logdet"):
         for key in ("mse", "mse_exact", "anees", "trace"):
@@ -114,7 +138,7 @@ def test_dynamic_case_fuses_the_kalman_filters_reports_as_fuse_does():
                 m[i] = m[i] + K @ (y[0] - model.H @ m[i])
                 P[i] = (np.eye(4) - K @ model.H) @ P[i]
         if t >= dcfg["burn_in"]:
-            kw = {"p_detect": sim["p"], "chi": 1 / dcfg["chi_inv_assumed"]}
+            kw = {"p_detect": sim["p"], "chi": 1 / dcfg["growth_assumed"]}
             fused["BCI trace"].append(fo.bci(m, P, backend=backend).mean)
             fused["MBCI logdet"].append(fo.mbci(m, P, criterion="logdet", **kw).mean)
             fused["naive"].append(fo.fuse(m, P, method="naive").mean)
