@@ -91,7 +91,8 @@ def test_report_of_the_quick_paper_needs_no_flags(tmp_path, capsys):
     assert "(2 runs" in (tmp_path / "table2" / "table2.md").read_text()
 
 
-@pytest.mark.parametrize("name", ["table1", "paper", "backends"])
+@pytest.mark.parametrize("name", ["table1", "table2", "nnode", "network", "paper",
+                                  "backends"])
 def test_report_of_a_study_never_run_says_so_and_creates_nothing(tmp_path, capsys, name):
     out = tmp_path / "nothing"
     assert main(["report", name, "--out", str(out)]) == 2
@@ -150,8 +151,8 @@ def test_list_shows_each_whole_description(capsys):
 
 def test_report_of_a_benchmark_rebuilds_from_its_meta_json(tmp_path):
     config = tmp_path / "b.toml"
-    config.write_text("n = [2]\nN = [2, 3]\ninstances = 2\nrepeats = 1\nbatch_pairs = 50\n"
-                      "batch_n = [3]\nbatch_repeats = 1\n")
+    config.write_text("n = [2]\nN = [2, 3]\ninstances = 2\nrepeats = 1\nbatch_size = 50\n"
+                      "large = []\nbatch_shapes = [[3, 2]]\nbatch_repeats = 1\n")
     assert main(["run", "backends", "--config", str(config), "--out", str(tmp_path),
                  "--quiet"]) == 0
     folder = tmp_path / "backends"
