@@ -12,9 +12,8 @@ import pytest
 import fusion_opt as fo
 from fusion_opt import FusionSolverError
 from fusion_opt.backends import REGISTRY, WeightSolution
-from studies import backends, config
-
-BCI, CI, RAW = backends.BCI, backends.CI, backends.RAW
+from studies import backends, backends_report, config, peers
+from studies.backends_report import BCI, CI, RAW
 
 
 def _tiny(**over) -> dict:
@@ -171,7 +170,7 @@ def test_minimize_scalar_peer_matches_a_grid_and_never_beats_closed_form(criteri
     rng = np.random.default_rng(7)
     for _ in range(5):
         means, covs = rng.standard_normal((2, 3)), backends.instance(rng, 2, 3, "random")
-        peer = backends.minimize_scalar_peer(means[0], covs[0], means[1], covs[1], criterion)
+        peer = peers.minimize_scalar_peer(means[0], covs[0], means[1], covs[1], criterion)
         Y_a, Y_b = np.linalg.inv(covs)
         grid = np.linspace(0.0, 1.0, 200_001)  # step 5e-6 on w
         f_grid = _pair_objective(Y_a, Y_b, grid, criterion).min()
@@ -191,7 +190,7 @@ def test_minimize_scalar_peer_matches_a_grid_and_never_beats_closed_form(criteri
 def test_slsqp_peer_is_on_the_simplex_and_near_a_simplex_grid_minimum(criterion):
     rng = np.random.default_rng(3)
     means, covs = rng.standard_normal((3, 2)), backends.instance(rng, 3, 2, "random")
-    peer = backends.slsqp_peer(means, covs, criterion)
+    peer = peers.slsqp_peer(means, covs, criterion)
     w = peer.weights
     assert peer.ok and abs(w.sum() - 1) < 1e-9 and (w >= -1e-12).all() and (w <= 1).all()
     Ys = np.linalg.inv(covs)
@@ -213,7 +212,7 @@ def test_slsqp_peer_is_on_the_simplex_and_near_a_simplex_grid_minimum(criterion)
 def test_fixed_weights_peer_is_ci_with_equal_weights():
     rng = np.random.default_rng(1)
     means, covs = rng.standard_normal((2, 3)), backends.instance(rng, 2, 3, "random")
-    peer = backends.fixed_weights_peer(means, covs, "trace")
+    peer = peers.fixed_weights_peer(means, covs, "trace")
     Y_a, Y_b = np.linalg.inv(covs)
     P = np.linalg.inv(0.5 * Y_a + 0.5 * Y_b)  # Stone Soup's omega = 0.5
     assert np.array_equal(peer.weights, [0.5, 0.5]) and np.allclose(peer.cov, P)
@@ -228,7 +227,7 @@ def test_performance_profile_of_a_hand_made_table():
                       [4.0, 2.0, 8.0],   # best 2: ratios 2, 1, 4
                       [inf, inf, inf],   # no solver: unsolved by all
                       [3.0, 3.0, 3.0]])  # a tie: ratio 1 for all
-    rho = backends.performance_profile(times, [1.0, 1.5, 2.0, 4.0, 100.0])
+    rho = backends_report.performance_profile(times, [1.0, 1.5, 2.0, 4.0, 100.0])
     assert rho.tolist() == [[0.5, 0.5, 0.75, 0.75, 0.75],
                             [0.5, 0.5, 0.75, 0.75, 0.75],
                             [0.25, 0.25, 0.25, 0.5, 0.5]]
@@ -246,11 +245,11 @@ def test_profile_times_count_failures_and_loose_answers_as_unsolved():
             _instance("minimize_scalar", "-", 1, 5.0, 0.0, failed=1),
             _instance(CI, "newton", 0, 0.5, 0.0),  # fo.ci and polish=False: not profiled
             _instance(RAW, "clarabel", 0, 0.5, 0.0)]
-    labels, times = backends.profile_times(rows, 1e-6)
+    labels, times = backends_report.profile_times(rows, 1e-6)
     assert labels == ["newton", "minimize_scalar"]
     assert times.tolist() == [[1.0, 5.0], [2.0, np.inf]]
-    assert backends.profile_times(rows, 1e-12)[1].tolist() == [[1.0, np.inf],
-                                                               [2.0, np.inf]]
+    assert backends_report.profile_times(rows, 1e-12)[1].tolist() == [[1.0, np.inf],
+                                                                      [2.0, np.inf]]
 
 
 def _row(mode, call, backend, n, N, criterion, median_ms, **more):
@@ -287,22 +286,22 @@ def _measured(fast_enough: bool) -> list[dict]:
 def test_targets_are_met_exactly_at_their_bounds_and_missed_below():
     instances = [_instance(CI, "closed-form", k, 0.01, 0.0) for k in range(3)]
     instances += [_instance("minimize_scalar", "-", k, 0.1, 1e-9) for k in range(3)]
-    met = backends.targets(_measured(True), instances)
+    met = backends_report.targets(_measured(True), instances)
     assert [t[2] for t in met] == ["met"] * 6
     assert "worst 100x at (n, N) = (4, 3) trace; 2 of 2 points >= 100x" in met[0][1]
-    missed = backends.targets(_measured(False), instances)
+    missed = backends_report.targets(_measured(False), instances)
     assert [t[2] for t in missed] == ["missed"] * 5 + ["met"]
     assert "worst 90x" in missed[0][1] and "trace 9x" in missed[1][1]
     # an objective worse than minimize_scalar's on one problem misses target 2
     worse = instances + [_instance(CI, "closed-form", 3, 0.01, 1e-9),
                          _instance("minimize_scalar", "-", 3, 0.1, 0.0)]
-    assert backends.targets(_measured(True), worse)[1][2] == "missed"
-    assert "on 1 of 4 pair problems" in backends.targets(_measured(True), worse)[1][1]
+    assert backends_report.targets(_measured(True), worse)[1][2] == "missed"
+    assert "on 1 of 4 pair problems" in backends_report.targets(_measured(True), worse)[1][1]
     # a newton failure or a loose certificate misses the exactness target
     spoiled = _measured(True) + [_row("single", BCI, "newton", 2, 2, "trace", 0.01,
                                       failures=1)]
-    assert backends.targets(spoiled, instances)[-1][2] == "missed"
-    assert [t[2] for t in backends.targets([], [])] == ["not measured"] * 6
+    assert backends_report.targets(spoiled, instances)[-1][2] == "missed"
+    assert [t[2] for t in backends_report.targets([], [])] == ["not measured"] * 6
 
 
 def test_weights_off_the_simplex_are_put_on_it_before_the_gaps():
