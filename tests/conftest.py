@@ -113,3 +113,16 @@ def joint(rng, covs, rho):
     S = 0.5 * (S + S.transpose(1, 0, 3, 2))
     S[np.arange(N), np.arange(N)] = covs
     return S
+
+
+def config_with(study: str, path: tuple, value) -> dict:
+    """The default configuration of a study with the field at `path` (a tuple of keys)
+    set to value: a configuration to hand to the study's check."""
+    from studies import config as configs
+
+    config = configs.load(study)
+    table = config
+    for key in path[:-1]:
+        table = table[key]
+    table[path[-1]] = value
+    return config

@@ -5,6 +5,7 @@ test_trackers_scenarios.py)."""
 
 import numpy as np
 import pytest
+from conftest import config_with
 
 import fusion_opt as fo
 from studies import config as configs
@@ -66,15 +67,6 @@ def test_cli_refuses_a_bad_field_by_name(tmp_path, capsys):
     assert not (tmp_path / "network").exists()
 
 
-def _with(path: tuple, value) -> dict:
-    config = configs.load("network")
-    table = config
-    for key in path[:-1]:
-        table = table[key]
-    table[path[-1]] = value
-    return config
-
-
 @pytest.mark.parametrize("path, value, message", [
     (("scenario", "p_detect"), [0.9, 1.5], r"\[scenario\] p_detect\[1\] must be .* got 1.5$"),
     (("scenario", "clutter_rate"), [0.1, 0.2], r"\[scenario\] clutter_rate must give one rate"),
@@ -100,11 +92,11 @@ def _with(path: tuple, value) -> dict:
 ])
 def test_check_refuses_a_bad_field_naming_it(path, value, message):
     with pytest.raises(configs.ConfigError, match=message):
-        network.check(_with(path, value))
+        network.check(config_with("network", path, value))
 
 
 def test_check_refuses_an_unknown_field():
-    config = _with(("tracker", "particles"), 10)
+    config = config_with("network", ("tracker", "particles"), 10)
     with pytest.raises(configs.ConfigError, match=r"\[tracker\] has unknown field\(s\) "
                                                     r"\['particles'\]"):
         network.check(config)

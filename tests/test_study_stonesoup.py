@@ -8,6 +8,7 @@ from datetime import datetime
 
 import numpy as np
 import pytest
+from conftest import config_with
 
 pytest.importorskip("stonesoup")
 
@@ -232,15 +233,6 @@ def test_scores_of_a_row_that_is_the_truth(config, simulation):
 
 # --- configuration --------------------------------------------------------------------------
 
-def _with(path: tuple, value) -> dict:
-    config = configs.load("stonesoup")
-    table = config
-    for key in path[:-1]:
-        table = table[key]
-    table[path[-1]] = value
-    return config
-
-
 @pytest.mark.parametrize("path, value, message", [
     (("scenario", "p_detect"), [0.9, 1.5, 0.8], r"\[scenario\] p_detect\[1\] must be in"),
     (("scenario", "p_detect"), [0.9], r"\[scenario\] p_detect must give two or more"),
@@ -273,7 +265,7 @@ def _with(path: tuple, value) -> dict:
 ])
 def test_check_refuses_a_bad_field_naming_it(path, value, message):
     with pytest.raises(configs.ConfigError, match=message):
-        study.check(_with(path, value))
+        study.check(config_with("stonesoup", path, value))
 
 
 def test_default_configurations_pass_and_have_enough_runs():
