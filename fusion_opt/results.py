@@ -116,7 +116,7 @@ class FusionResult:
         read-only in place, and of a Status: what __init__ does without its copies and
         checks, which cost a third of a small fusion."""
         for name in ("weights", "mean", "cov"):
-            fields[name].flags.writeable = False
+            fields[name].setflags(write=False)
         result = object.__new__(cls)
         result.__dict__.update(fields)
         return result

@@ -49,10 +49,11 @@ _EPS = np.finfo(np.float64).eps
 
 
 @jit
-def solve(F, trace: bool, W0, use_start: bool, W, rel, iters):
+def solve(F, trace: bool, W0, use_start: bool, W, rel, iters, certify: bool = True):
     """Weights W (B, N), relative certificates rel (B,) and iterations (B,) for factors
     F (B, N, n, n); each SQP starts at W0[b] when use_start (a polish), else at uniform
-    weights."""
+    weights. certify=False leaves rel of N = 2 unset (its certificate is an extra
+    evaluation there, which a caller that certifies the weights itself need not pay)."""
     B, N, n = F.shape[0], F.shape[1], F.shape[2]
     ws = work(N, n)
     At, Vt, R, Ri, P, Bm, X, S = ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S
@@ -65,7 +66,8 @@ def solve(F, trace: bool, W0, use_start: bool, W, rel, iters):
             w, iters[b] = closed_form.pair_weight_at(F[b], trace, At, Vt, R, Ri, P, Bm, X, S,
                                                      ws.U, ws.lam, ws.abc)
             W[b, 0], W[b, 1] = w, 1.0 - w
-            rel[b] = _certificate(F[b], W[b], trace, At, Vt, R, Ri, P, Bm, ws.g)[2]
+            if certify:
+                rel[b] = _certificate(F[b], W[b], trace, At, Vt, R, Ri, P, Bm, ws.g)[2]
         else:
             if use_start:
                 copy(W[b], W0[b])
