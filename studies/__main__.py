@@ -37,7 +37,9 @@ if __name__ == "__main__":  # Ctrl-C during the imports below: one line, no trac
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import ast  # noqa: E402
 import importlib  # noqa: E402
+import importlib.util  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -54,11 +56,22 @@ STUDIES = {
     "stonesoup": "studies.stonesoup",
 }
 GROUPS = {"paper": ("table1", "table2")}
+# study -> (the package it needs beyond the base install, the extra that installs it)
+NEEDS = {"stonesoup": ("stonesoup", "stonesoup")}
 STORE, META, REPORT = "runs.sqlite", "meta.json", "report.json"
 
 
 def _module(name: str):
+    """The study's module; a ConfigError (one line) when a package it needs is missing."""
+    if name in NEEDS and importlib.util.find_spec(NEEDS[name][0]) is None:
+        raise configs.ConfigError(f"{name}: {_missing(name)}")
     return importlib.import_module(STUDIES[name])
+
+
+def _missing(name: str) -> str:
+    package, extra = NEEDS[name]
+    return (f"this study needs {package!r}, which is not installed: "
+            f"pip install -e '.[{extra}]'")
 
 
 def _monte_carlo(module) -> bool:
@@ -93,10 +106,15 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _summary_line(module) -> str:
-    """The first paragraph of a module's docstring, on one line."""
-    paragraph = (module.__doc__ or "").strip().split("\n\n")[0]
-    return " ".join(paragraph.split())
+def _summary_line(name: str) -> str:
+    """The first paragraph of the study module's docstring, on one line, read from its
+    source (listing imports no study, so a study whose extra is missing is listed too)."""
+    source = Path(importlib.util.find_spec(STUDIES[name]).origin).read_text()
+    paragraph = (ast.get_docstring(ast.parse(source)) or "").strip().split("\n\n")[0]
+    line = " ".join(paragraph.split())
+    if name in NEEDS and importlib.util.find_spec(NEEDS[name][0]) is None:
+        line += f" [{_missing(name)}]"
+    return line
 
 
 # -------------------------------------------------------------------------------- run
@@ -240,7 +258,7 @@ def main(argv=None) -> int:
     args.command_line = " ".join(["python -m studies", *argv])
     if args.command == "list":
         for name in sorted(STUDIES):
-            print(f"{name:10s} {_summary_line(_module(name))}")
+            print(f"{name:10s} {_summary_line(name)}")
         for group, members in GROUPS.items():
             print(f"{group:10s} runs {' and '.join(members)}")
         return 0

@@ -4,6 +4,7 @@ Killing and interrupting a running study: test_studies_interrupt.py."""
 
 import json
 import sqlite3
+import sys
 from pathlib import Path
 
 import pytest
@@ -169,3 +170,20 @@ def test_an_out_folder_that_cannot_be_made_is_refused_in_one_line(tiny, tmp_path
                  "--quiet"]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "file/table1" in err
+
+
+def test_a_study_whose_extra_is_missing_is_listed_and_refused_in_one_line(tmp_path, capsys,
+                                                                          monkeypatch):
+    """The README's main job installs no extra: list still works and names the install
+    command; run and report of the Stone Soup study say what to install, create nothing."""
+    monkeypatch.setitem(sys.modules, "stonesoup", None)  # import stonesoup now fails
+    monkeypatch.delitem(sys.modules, "studies.stonesoup", raising=False)
+    assert main(["list"]) == 0
+    listed = capsys.readouterr().out
+    assert "pip install -e '.[stonesoup]'" in listed and "table1 " in listed
+    for argv in (["run", "stonesoup", "--quick"], ["report", "stonesoup"]):
+        assert main([*argv, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+        assert "stonesoup: this study needs 'stonesoup'" in err
+        assert not (tmp_path / "out").exists()
