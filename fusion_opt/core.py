@@ -269,7 +269,8 @@ def _exact(req, means, covs, q, E, a, names, batch):
                       a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
     if code > 0:
         raise _input_error(code, a.where, means, covs, names, batch)
-    if (a.rel[0] if len(a.rel) == 1 else a.rel.max()) > OPTIMAL_RTOL:
+    rel = a.stats[:, 2]  # the certificate reported, which the status is decided on
+    if (rel[0] if len(rel) == 1 else rel.max()) > OPTIMAL_RTOL:
         _rescue(req, means, covs, q, E, a)
     if code < 0:
         raise _overflow()
@@ -315,7 +316,7 @@ def _rescue(req, means, covs, q, E, a):
     """Problems whose native certificate is not within OPTIMAL_RTOL (rounding level on a
     hard problem) are solved again by "clarabel-direct" and polished; per problem, the
     result with the better certificate is kept."""
-    for b in np.flatnonzero(a.rel > OPTIMAL_RTOL):
+    for b in np.flatnonzero(a.stats[:, 2] > OPTIMAL_RTOL):
         one = _Arrays(1, *a.F.shape[1:3])
         try:
             _conic(Request(req.method, req.criterion, "clarabel-direct", True, req.args),

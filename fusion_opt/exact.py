@@ -22,15 +22,13 @@ from .prepare import OK, prepare
 @jit
 def fuse_exact(means, covs, q, E, trace: bool, F, k, vertex, pnorm, where, W, rel, iters,
                mean, cov, stats) -> int:
-    """prepare, solve, assemble (their docstrings say what each array holds); rel (B,) is
-    the relative certificate of the returned estimates (stats[:, 2], which assemble
-    computes; the solver's own is not needed). Returns prepare's code, or -1 when a
-    result overflows float64."""
+    """prepare, solve, assemble (their docstrings say what each array holds; rel is the
+    solver's scratch: the certificate of the returned estimates is assemble's, stats[:, 2],
+    so the pairwise solver need not compute its own). Returns prepare's code, or -1 when
+    a result overflows float64."""
     code = prepare(means, covs, q, E, F, k, vertex, pnorm, where)
     if code != OK:
         return code
     solve(F, trace, W, False, W, rel, iters, False)
-    finite = assemble(F, means, covs, q, E, k, vertex, pnorm, W, trace, mean, cov, stats)
-    for b in range(rel.size):
-        rel[b] = stats[b, 2]
-    return OK if finite else -1
+    return OK if assemble(F, means, covs, q, E, k, vertex, pnorm, W, trace, mean, cov,
+                          stats) else -1

@@ -107,7 +107,7 @@ from fusion_opt.association import METHODS as ASSOCIATIONS
 from trackers import metrics
 
 from . import config as configs
-from . import stats
+from . import plotting, stats
 from .plotting import new_figure
 from .runner import FIGURE_RUN
 
@@ -443,24 +443,26 @@ def scores(config: dict, sim: Simulation, row: Fused) -> dict:
     per scan and its agreement with Stone Soup's metric generators."""
     c, p = config["metrics"]["cutoff"], config["metrics"]["order"]
     pos = list(POSITION)
-    ospa, gospa, card, err, nees = [], [], [], [], []
+    ospa, gospa, matched, truths, nees = [], [], [], [], []
     for scan, means, covs in zip(sim.scans, row.means, row.covs, strict=True):
         X, Y = means[:, pos], scan.truth[:, pos]
         ospa.append(metrics.ospa(X, Y, c, p))
         gospa.append(metrics.gospa(X, Y, c, p, 2.0))
-        card.append(abs(len(X) - len(Y)))
         est, targets = metrics.match(X, Y, c)
-        err.append(X[est] - Y[targets])
+        matched.append(X[est])
+        truths.append(Y[targets])
         if len(est):
             nees.append(metrics.nees(means[est], scan.truth[targets], covs[est]))
-    err = np.concatenate(err)
+    matched, truths = np.concatenate(matched), np.concatenate(truths)
+    card = np.abs(metrics.cardinality_error([len(m) for m in row.means],
+                                            [len(scan.truth) for scan in sim.scans]))
     nees = np.concatenate(nees) if nees else np.zeros(0)
     ss_ospa, ss_gospa = stonesoup_metrics(sim, row, c, p)
     anees = float(nees.mean()) if nees.size else float("nan")
     band = metrics.anees_bounds(NDIM, nees.size) if nees.size else (np.nan, np.nan)
     out = {"ospa": float(np.mean(ospa)), "gospa": float(np.mean(gospa)),
            "card_err": float(np.mean(card)),
-           "rmse": float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) if len(err) else np.nan,
+           "rmse": metrics.rmse(matched, truths) if len(matched) else np.nan,
            "anees": anees, "in_band": float(band[0] <= anees <= band[1]),
            "matched": int(nees.size),
            "trace": float(np.mean(row.traces)) if row.traces else float("nan"),
@@ -694,7 +696,7 @@ def _ospa_figure(config, results, path: Path) -> None:
 
 
 VIEW_MARGIN = 12.0  # m around the true paths in the scenario figure
-LEGEND_ORDER = ("truth", "start", "target measurements", "clutter", "tracks", "fused")
+LEGEND_ORDER = ("true path", "start", "target measurements", "clutter", "tracks", "fused")
 
 
 def _scenario_figure(config, figure, path: Path) -> None:
@@ -738,7 +740,7 @@ def _scenario_figure(config, figure, path: Path) -> None:
                xlabel="x (m)", ylabel="y (m)")
     for ax in axes[panels:]:
         ax.set_visible(False)
-    handles = {}
+    handles = {h.get_label(): h for h in plotting.path_handles()}
     for ax in axes[:panels]:
         for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(label, h)
@@ -756,11 +758,6 @@ def _scenario_figure(config, figure, path: Path) -> None:
 
 
 def _draw_truth(ax, truth: np.ndarray) -> None:
-    """True paths (J, T, 2): black lines, start circles, an arrow along the direction of
-    travel at the end of each path."""
-    for j, path in enumerate(truth):
-        ax.plot(path[:, 0], path[:, 1], "k-", lw=1, label="truth" if j == 0 else None)
-        ax.plot(*path[0], "ko", ms=6, mfc="white", label="start" if j == 0 else None)
-        k = max(0, len(path) - 4)
-        ax.annotate("", xy=path[-1], xytext=path[k],
-                    arrowprops=dict(arrowstyle="-|>", color="k", lw=1.2))
+    """True paths (J, T, 2), each with its start and an arrowhead near its end."""
+    for xy in truth:
+        plotting.path(ax, xy, arrows=1, at=[0.97])
