@@ -358,25 +358,31 @@ def _overflow() -> FusionInputError:
 
 
 def _rules(req, means, covs, k, batch):
-    """A rule of rules.py, problem by problem, on the prescaled covariances."""
+    """A rule of rules.py on the prescaled covariances: the whole batch in one call for the
+    rules of rules.BATCHED, problem by problem for the others."""
     B, N, n = means.shape
     shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
     scaled = np.ldexp(0.5 * (covs + np.swapaxes(covs, -1, -2)), shift)
-    cross = _cross(req.args.get("cross"), B, N, n, batch) if "cross" in _ARGS[req.method] \
-        else None
-    outs = []
-    for b in range(B):
-        args = {} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}
-        outs.append(rules.RULES[req.method](means[b], scaled[b], req.criterion, **args))
-    scaled_cov = np.stack([o.cov for o in outs])
+    rule = rules.RULES[req.method]
+    if req.method in rules.BATCHED:
+        o = rule(means, scaled, req.criterion)
+        weights, mean, scaled_cov, weights_are = o.weights, o.mean, o.cov, o.weights_are
+        status = np.array([Status(o.status)] * B, dtype=object)
+    else:
+        cross = _cross(req.args.get("cross"), B, N, n, batch) \
+            if "cross" in _ARGS[req.method] else None
+        outs = [rule(means[b], scaled[b], req.criterion, **({} if cross is None else {
+            "cross": np.ldexp(cross[b], shift[b, 0])})) for b in range(B)]
+        weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
+        status = np.array([Status(o.status) for o in outs], dtype=object)
+        weights_are = outs[0].weights_are
     cov = np.ldexp(scaled_cov, -shift[:, 0])
     if req.trace:
         obj = np.ldexp(np.trace(scaled_cov, axis1=-2, axis2=-1), k)
     else:
         obj = _logdet(scaled_cov) + n * k * np.log(2.0)
-    status = np.array([Status(o.status) for o in outs], dtype=object)
-    return (np.stack([o.weights for o in outs]), np.stack([o.mean for o in outs]), cov, obj,
-            np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0, outs[0].weights_are)
+    return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
+            weights_are)
 
 
 def _cross(cross, B, N, n, batch):

@@ -87,8 +87,8 @@ class RuleOutput(NamedTuple):
 
 
 def naive(means, covs, criterion) -> RuleOutput:
-    """Independent (Kalman) fusion: CI formula with every weight 1."""
-    return _ci_with(means, covs, np.ones(len(means)), "naive", GAIN_SHARES)
+    """Independent (Kalman) fusion: CI formula with every weight 1 (batched, see BATCHED)."""
+    return _ci_with(means, covs, np.ones(means.shape[:-1]), "naive", GAIN_SHARES)
 
 
 def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
@@ -109,10 +109,10 @@ def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
 
 
 def fast_ci(means, covs, criterion) -> RuleOutput:
-    """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002)."""
+    """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002; batched)."""
     tr = np.trace(covs, axis1=-2, axis2=-1)
-    ratio = tr.min() / tr  # in (0, 1]: no overflow whatever the scales
-    return _ci_with(means, covs, ratio / ratio.sum(), "fast-ci", CI_WEIGHTS)
+    ratio = tr.min(-1, keepdims=True) / tr  # in (0, 1]: no overflow whatever the scales
+    return _ci_with(means, covs, ratio / ratio.sum(-1, keepdims=True), "fast-ci", CI_WEIGHTS)
 
 
 def ifci(means, covs, criterion) -> RuleOutput:
@@ -162,6 +162,9 @@ RULES: dict[str, Callable[..., RuleOutput]] = {
 RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
     "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
+# Rules that take a batch, means (B, N, n) and covs (B, N, n, n), in one call (each
+# problem computed as alone); the others take one problem at a time.
+BATCHED = frozenset({"naive", "fast-ci"})
 
 
 def _information(covs):
@@ -183,12 +186,13 @@ def _chol_diagonal(covs):
 
 
 def _ci_with(means, covs, w, method, weights_are, Ys=None) -> RuleOutput:
-    """The CI formula with weights w (N,): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i; the
-    gains are applied without being formed (O(N n^2))."""
-    wY = w[:, None, None] * (_information(covs) if Ys is None else Ys)
-    P = np.linalg.inv(wY.sum(0))
-    shares = np.einsum("jk,ijk->i", P, wY) / means.shape[1]  # tr(P w_i Y_i) / n
-    mean = _mean(means, shares, lambda d: P @ np.einsum("ijk,ik->j", wY, d))
+    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i; the
+    gains are applied without being formed (O(N n^2)). Leading axes are problems."""
+    wY = w[..., None, None] * (_information(covs) if Ys is None else Ys)
+    P = np.linalg.inv(wY.sum(-3))
+    shares = np.einsum("...jk,...ijk->...i", P, wY) / means.shape[-1]  # tr(P w_i Y_i) / n
+    mean = _mean(means, shares,
+                 lambda d: (P @ np.einsum("...ijk,...ik->...j", wY, d)[..., None])[..., 0])
     weights = w if weights_are == CI_WEIGHTS else shares
     return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
 
@@ -196,7 +200,7 @@ def _ci_with(means, covs, w, method, weights_are, Ys=None) -> RuleOutput:
 def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) -> RuleOutput:
     """A rule given by its gains (N, n, n) and P; weights are CI weights if given, else the
     gain shares."""
-    shares = np.trace(gains, axis1=-2, axis2=-1) / means.shape[1]
+    shares = np.trace(gains, axis1=-2, axis2=-1) / means.shape[-1]
     mean = _mean(means, shares, lambda d: np.einsum("ijk,ik->j", gains, d))
     if weights is None:
         return _output(method, shares, mean, P, status, GAIN_SHARES)
@@ -205,19 +209,20 @@ def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) ->
 
 def _mean(means, shares, apply_gains):
     """m = m_r + sum_i K_i (m_i - m_r) (sum_i K_i = I), r the node of the largest gain share;
-    apply_gains(d) = sum_i K_i d_i for d (N, n), given differences scaled by 2^-e so that
-    each is at most 2 in size and no product overflows."""
-    r = int(np.argmax(shares))
-    e = int(np.frexp(np.abs(means).max())[1])
-    d = np.ldexp(means, -e) - np.ldexp(means[r], -e)
+    apply_gains(d) = sum_i K_i d_i for d (..., N, n), given differences scaled by 2^-e so
+    that each is at most 2 in size and no product overflows."""
+    r = np.argmax(shares, axis=-1)[..., None, None]
+    ref = np.take_along_axis(means, r, axis=-2)  # (..., 1, n)
+    e = np.frexp(np.abs(means).max(axis=(-2, -1), keepdims=True))[1]
+    d = np.ldexp(means, -e) - np.ldexp(ref, -e)
     with np.errstate(over="ignore"):  # a mean beyond the float range: refused in _output
-        return means[r] + np.ldexp(apply_gains(d), e)
+        return ref[..., 0, :] + np.ldexp(apply_gains(d), e[..., 0])
 
 
 def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:
     """The result, refused (FusionSolverError) if anything is non-finite or P is not
     positive definite."""
-    P = 0.5 * (P + P.T)
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
     finite = all(np.isfinite(x).all() for x in (weights, mean, P))
     try:
         if finite:

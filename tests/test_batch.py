@@ -94,3 +94,14 @@ def test_repr_is_a_summary():
     means, covs = _batch(4, 1000, 3, 2)
     text = repr(fo.fuse_batch(means, covs))
     assert "B=1000" in text and "optimal: 1000" in text and len(text) < 400
+
+
+@pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci"])
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+def test_batched_rules_of_many_nodes_equal_per_problem(method, criterion):
+    """naive and fast-ci fuse a batch in one vectorised call (rules.BATCHED): each problem
+    must come out as it does alone, bit for bit."""
+    means, covs = _batch(11, 7, 5, 3)
+    r = fo.fuse_batch(means, covs, method, criterion)
+    for b in range(7):
+        _same(r, fo.fuse(means[b], covs[b], method=method, criterion=criterion), b)
