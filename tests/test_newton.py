@@ -2,6 +2,8 @@
 references: the numpy criteria of criteria.py (f, g, H from inverted informations),
 CVXPY/Clarabel, grids, and each other (the SQP on N = 2 against the 1-D method)."""
 
+import math
+
 import cvxpy as cp
 import numpy as np
 import pytest
@@ -181,3 +183,18 @@ def test_no_progress_near_the_optimum_stops_after_a_few_steps():
     w = np.full(5, 0.2)
     rel, it = newton.sqp(F, True, w, work(5, 2), 0.0, 500)  # a tolerance never reached
     assert rel <= 1e-13 and it < 40
+
+
+def test_pair_ladder_log_det_of_a_product_equals_the_sum_of_logs_to_the_last_digits():
+    """closed_form._value takes one log of a product where it can: against math.fsum of
+    the n logs, at factors from 1 down to 1e-320 (denormal) and at a pole (a factor 0)."""
+    rng = np.random.default_rng(11)
+    for n in (1, 4, 48, 200):
+        for low in (0.0, -50.0, -150.0, -320.0):
+            d = 10.0 ** rng.uniform(low, 0.0, n)
+            abc = np.stack([np.zeros(n), d, np.ones(n)])  # d_k(w) = d_k at every w
+            want = -math.fsum(np.log(d))
+            got = closed_form._value(0.5, abc, False)
+            assert abs(got - want) <= 8 * n * np.finfo(float).eps * max(abs(want), 1.0)
+    abc = np.stack([np.zeros(3), np.array([0.5, 0.0, 0.25]), np.ones(3)])
+    assert closed_form._value(0.5, abc, False) == np.inf

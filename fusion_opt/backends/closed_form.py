@@ -95,15 +95,36 @@ def _column_sumsq(X, k) -> float:
 
 
 @jit
+def _value(w, abc, trace: bool) -> float:
+    """f at w ("logdet" up to its constant): for "logdet" -log of the product of the d_k,
+    kept in range (d_k <= 1), one log for many factors instead of one each."""
+    n = abc.shape[1]
+    f, m = 0.0, 1.0
+    for k in range(n):
+        d = abc[1, k] + w * abc[0, k]
+        if trace:
+            f += abc[2, k] / d
+        elif d < 1e-100:  # a factor that could take the product below the normal range
+            f -= np.log(d)
+        else:
+            m *= d
+            if m < 1e-200:
+                f -= np.log(m)
+                m = 1.0
+    return f if trace else f - np.log(m)
+
+
+@jit
 def _derivatives(w, abc, trace: bool):
-    """f, f' and the damped curvature of the module docstring at w."""
+    """f' and the damped curvature of the module docstring at w, and f for "trace" (the
+    curvature's and the stopping test's scale; "logdet" needs f only in the ladder)."""
     f = fp = fpp = 0.0
     n = abc.shape[1]
     for k in range(n):
         d = abc[1, k] + w * abc[0, k]
         r = abc[0, k] / d
         q = abc[2, k] / d if trace else 1.0
-        f += q if trace else -np.log(d)
+        f += q
         fp -= q * r
         fpp += q * r * r
     if trace:
@@ -116,7 +137,7 @@ def solve_weight(abc, trace: bool):
     """argmin over w in [0, 1] of the 1-D problem; (w, iterations)."""
     k_best, f_best = 0, np.inf
     for k in range(_LADDER.size):
-        f = _derivatives(_LADDER[k], abc, trace)[0]
+        f = _value(_LADDER[k], abc, trace)
         if f < f_best:
             k_best, f_best = k, f
     w = _LADDER[k_best]
