@@ -100,6 +100,10 @@ _NAMES = Names()
 
 def request(method, criterion, backend, args: dict) -> Request:
     """Check the options by name (module docstring); nothing is computed yet."""
+    polish = args.get("polish", True)  # the common case first, without copying args
+    if len(args) == ("polish" in args) and type(polish) is bool and type(method) is str \
+            and type(criterion) is str and (backend is None or type(backend) is str):
+        return _plain_request(method, criterion, backend, polish)
     args = {k: v for k, v in args.items() if v is not None}  # None: not given
     if not args.keys() - {"polish"} and type(method) is str and type(criterion) is str \
             and type(backend) in (str, type(None)) and type(args.get("polish", True)) is bool:
