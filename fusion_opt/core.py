@@ -273,8 +273,8 @@ def _exact(req, means, covs, q, E, a, names, batch):
                       a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
     if code > 0:
         raise _input_error(code, a.where, means, covs, names, batch)
-    rel = a.stats[:, 2]  # the certificate reported, which the status is decided on
-    if (rel[0] if len(rel) == 1 else rel.max()) > OPTIMAL_RTOL:
+    # the certificate reported, which the status is decided on
+    if (a.stats[0, 2] if len(a.stats) == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
         _rescue(req, means, covs, q, E, a)
     if code < 0:
         raise _overflow()
