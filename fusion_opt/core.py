@@ -258,6 +258,34 @@ class _Arrays:
 _THREAD = threading.local()
 
 
+KERNEL_PARTS = ("solve", "assemble")
+
+
+def compile_part(part: str) -> float:
+    """Compile, or load from numba's disk cache, one part of the exact path's kernels
+    ("solve": checks, factors and the weight solvers; "assemble": the fused estimates and
+    their certificate) for the array types `fuse_exact` calls them with; returns the
+    seconds it took. `fuse_exact` links the kernels it calls from their own cache
+    entries, so on a machine whose cache is cold, two processes compiling the parts at
+    once before the first fusion shorten it: 42 s in one process, about 20 s + 7 s
+    (measured on 2 cores; `studies/runner.py` has its workers do it)."""
+    if part not in KERNEL_PARTS:
+        raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
+    t0 = time.perf_counter()
+    B, N, n = 1, 3, 2
+    a = _Arrays(B, N, n)
+    means, covs = np.zeros((B, N, n)), np.tile(np.eye(n), (B, N, 1, 1))
+    q, E = _unit_scales(B, N)
+    prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
+    a.W[:] = 1.0 / N
+    if part == "solve":
+        newton.solve(a.F, True, a.W, False, a.W, a.rel, a.iters, False)
+    else:
+        assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, True, a.mean, a.cov,
+                 a.stats)
+    return time.perf_counter() - t0
+
+
 def _prepare(means, covs, q, E, a, names, batch):
     code = prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
     if code:

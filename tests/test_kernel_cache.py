@@ -138,3 +138,35 @@ def test_a_cached_caller_runs_the_edited_kernel(tmp_path, drop):
     assert _call(root, env) == 1  # from the cache
     _write(root / "inner.py", "from .base import jit\n@jit\ndef value():\n    return 2\n")
     assert _call(root, env) == (2 if drop else 1)
+
+
+def test_compile_part_refuses_an_unknown_part():
+    from fusion_opt import core
+
+    with pytest.raises(ValueError, match="part must be one of"):
+        core.compile_part("everything")
+
+
+@pytest.mark.slow
+def test_the_exact_path_links_the_parts_compiled_by_other_processes(tmp_path):
+    """What studies/runner.py relies on: after other processes compiled the parts
+    (`core.compile_part`) into a cold cache, the first fusion loads them from the cache
+    instead of compiling them again."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    part = "from fusion_opt import core; core.compile_part({!r})"
+    for name in ("solve", "assemble"):
+        subprocess.run([sys.executable, "-c", part.format(name)], env=env, check=True)
+    first = textwrap.dedent("""
+        import numpy as np
+        import fusion_opt as fo
+        from fusion_opt.assemble import assemble
+        from fusion_opt.backends import newton
+        fo.bci(np.zeros((3, 2)), np.stack([np.eye(2)] * 3))
+        for kernel in (newton._sqp, assemble):  # the solver's and the estimates' bulk
+            print(sum(kernel.stats.cache_hits.values()), sum(kernel.stats.cache_misses.values()))
+    """)
+    out = subprocess.run([sys.executable, "-c", first], env=env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    hits_sqp, misses_sqp, hits_assemble, misses_assemble = map(int, out)
+    assert hits_sqp >= 1 and hits_assemble >= 1
+    assert misses_sqp == 0 and misses_assemble == 0
