@@ -100,15 +100,18 @@ _NAMES = Names()
 
 def request(method, criterion, backend, args: dict) -> Request:
     """Check the options by name (module docstring); nothing is computed yet."""
-    polish = args.get("polish", True)  # the common case first, without copying args
-    if len(args) == ("polish" in args) and type(polish) is bool and type(method) is str \
-            and type(criterion) is str and (backend is None or type(backend) is str):
-        return _plain_request(method, criterion, backend, polish)
-    args = {k: v for k, v in args.items() if v is not None}  # None: not given
-    if not args.keys() - {"polish"} and type(method) is str and type(criterion) is str \
-            and type(backend) in (str, type(None)) and type(args.get("polish", True)) is bool:
-        return _plain_request(method, criterion, backend, args.get("polish", True))
-    return _request(method, criterion, backend, args)
+    if not _plain(method, criterion, backend, args):  # the common case without a copy
+        args = {k: v for k, v in args.items() if v is not None}  # None: not given
+        if not _plain(method, criterion, backend, args):
+            return _request(method, criterion, backend, args)
+    return _plain_request(method, criterion, backend, args.get("polish", True))
+
+
+def _plain(method, criterion, backend, args: dict) -> bool:
+    """Options of plain types and no method argument but polish."""
+    return len(args) == ("polish" in args) and type(args.get("polish", True)) is bool \
+        and type(method) is str and type(criterion) is str \
+        and (backend is None or type(backend) is str)
 
 
 @functools.lru_cache(maxsize=256)

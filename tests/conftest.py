@@ -126,3 +126,19 @@ def config_with(study: str, path: tuple, value) -> dict:
         table = table[key]
     table[path[-1]] = value
     return config
+
+
+def tiny_run(tmp_path, study: str, config_text: str, outputs=()):
+    """Run `study` from the command line on the configuration config_text, serially and
+    quietly, into tmp_path; asserts success and that every file of outputs is non-empty;
+    returns the study's folder."""
+    from studies.__main__ import main
+
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(config_text)
+    assert main(["run", study, "--config", str(cfg), "--out", str(tmp_path), "--quiet",
+                 "--workers", "1"]) == 0
+    folder = tmp_path / study
+    for name in outputs:
+        assert (folder / name).stat().st_size > 0, name
+    return folder

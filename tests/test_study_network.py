@@ -5,7 +5,7 @@ test_trackers_scenarios.py)."""
 
 import numpy as np
 import pytest
-from conftest import config_with
+from conftest import config_with, tiny_run
 
 import fusion_opt as fo
 from studies import config as configs
@@ -33,13 +33,7 @@ OUTPUTS = ("network.md", "network.csv", "network_throughput.csv", "network_track
 
 
 def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
-    cfg = tmp_path / "tiny.toml"
-    cfg.write_text(TINY)
-    assert main(["run", "network", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
-                 "--workers", "1"]) == 0
-    folder = tmp_path / "network"
-    for name in OUTPUTS:
-        assert (folder / name).stat().st_size > 0, name
+    folder = tiny_run(tmp_path, "network", TINY, OUTPUTS)
     table = (folder / "network.md").read_text()
     for row in ("| 16 | RBMCDA | monitoring |", "| A | CI | 1 |", "| top | MBCI | 2 |",
                 "| top | naive | 2 |", "| sources | 3 | mbci |", "| targets | 8 | bci |"):

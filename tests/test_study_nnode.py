@@ -3,6 +3,7 @@ show against the known truth."""
 
 import numpy as np
 import pytest
+from conftest import tiny_run
 
 import fusion_opt as fo
 from studies import config as configs
@@ -37,11 +38,7 @@ def test_tiny_study_writes_every_table_as_csv_and_report_rebuilds_it(tmp_path):
     """nnode.md, a CSV per table (each sweep's MSE, ANEES and consistency, its paired MBCI
     minus BCI; the dynamic case; the scaling) and the figures; `report` rebuilds them from
     the store without flags and leaves meta.json alone."""
-    cfg = tmp_path / "tiny.toml"
-    cfg.write_text(TINY)
-    assert main(["run", "nnode", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
-                 "--workers", "1"]) == 0
-    folder = tmp_path / "nnode"
+    folder = tiny_run(tmp_path, "nnode", TINY)
     text = (folder / "nnode.md").read_text()
     for heading in ("sweep over N", "sweep over rho", "sweep over spread",
                     "sweep over growth_assumed", "Dynamic", "Scaling"):

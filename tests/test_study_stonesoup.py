@@ -8,7 +8,7 @@ from datetime import datetime
 
 import numpy as np
 import pytest
-from conftest import config_with
+from conftest import config_with, tiny_run
 
 pytest.importorskip("stonesoup")
 
@@ -287,13 +287,7 @@ def test_cli_refuses_a_bad_field_before_anything_runs(tmp_path, capsys):
 # --- the command line -----------------------------------------------------------------------
 
 def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
-    cfg = tmp_path / "tiny.toml"
-    cfg.write_text(TINY)
-    assert main(["run", "stonesoup", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
-                 "--workers", "1"]) == 0
-    folder = tmp_path / "stonesoup"
-    for name in OUTPUTS:
-        assert (folder / name).stat().st_size > 0, name
+    folder = tiny_run(tmp_path, "stonesoup", TINY, OUTPUTS)
     table = (folder / "stonesoup.md").read_text()
     for row in ("| sensor 3 | ", "| Chernoff 0.5 | ", "| optimal CI trace | ", "| fast CI | ",
                 "rule minus Chernoff 0.5", "GOSPA Stone Soup"):
