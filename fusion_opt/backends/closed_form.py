@@ -116,15 +116,17 @@ def _value(w, abc, trace: bool) -> float:
 
 @jit
 def _derivatives(w, abc, trace: bool):
-    """f' and the damped curvature of the module docstring at w, and f for "trace" (the
-    curvature's and the stopping test's scale; "logdet" needs f only in the ladder)."""
+    """f, f' and the damped curvature of the module docstring at w; f only for "trace"
+    (the curvature's and the stopping test's scale: "logdet" needs f only in the ladder,
+    `_value`), 0 for "logdet"."""
     f = fp = fpp = 0.0
     n = abc.shape[1]
     for k in range(n):
         d = abc[1, k] + w * abc[0, k]
         r = abc[0, k] / d
         q = abc[2, k] / d if trace else 1.0
-        f += q
+        if trace:
+            f += q
         fp -= q * r
         fpp += q * r * r
     if trace:
