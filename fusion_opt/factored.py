@@ -78,7 +78,7 @@ _ERR_C = 8.0
 Work = namedtuple("Work", [
     "At", "Vt", "R", "Ri", "P", "B", "X", "S", "lam", "U",  # QR (transposed) and n x n
     "zeta", "g", "Et",                                        # the SQP model
-    "x", "z", "mask", "r", "cols", "Elt", "Vlt", "Rls",       # the nearest point
+    "x", "z", "mask", "r", "cols", "Elt", "Vlt", "Rls", "qe", # the nearest point
     "w_try", "best_w", "rhs", "abc",                          # steps, means, pairs
 ])
 
@@ -97,7 +97,7 @@ def work(N: int, n: int) -> Work:
                 np.empty(m), np.empty(N), Et,
                 np.empty(N), np.empty(N), np.zeros(N, dtype=np.bool_), np.empty(m + 1),
                 np.empty(N, dtype=np.int64), np.empty((K, m + 1)), np.empty((K, m + 1)),
-                np.empty((K, K)), np.empty(N), np.empty(N), np.empty(N * n),
+                np.empty((K, K)), np.empty(m + 1), np.empty(N), np.empty(N), np.empty(N * n),
                 np.empty((3, n)))
 
 

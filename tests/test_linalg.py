@@ -70,3 +70,20 @@ def test_householder_is_a_qr_and_blocks_like_one_column_at_a_time(n, rows):
                 t += Vt[k, i] * X[j, i]
             X[j, k:] -= 2.0 * t * Vt[k, k:]
         np.testing.assert_array_equal(R[k, k + 1:], X[k + 1:, k])
+
+
+@pytest.mark.parametrize("n,rows", [(1, 3), (3, 17), (5, 17), (9, 40), (37, 37)])
+def test_householder_column_appends_the_columns_of_householder_bit_for_bit(n, rows):
+    """Columns added one at a time (the NNLS of backends/newton.py keeps its QR so) give
+    the reflectors and R of the whole QR exactly, and so a QR of A."""
+    rng = np.random.default_rng([123, n, rows])
+    A = rng.standard_normal((rows, n)) * 10.0 ** rng.uniform(-3, 3, n)
+    At, Vt, R = np.ascontiguousarray(A.T), np.zeros((n, rows)), np.empty((n, n))
+    linalg.householder(At, n, rows, Vt, R)
+    Bt, Wt, S = np.ascontiguousarray(A.T), np.zeros((n, rows)), np.full((n, n), np.nan)
+    for k in range(n):
+        linalg.householder_column(Bt, k, rows, Wt, S)
+    np.testing.assert_array_equal(Wt, Vt)
+    np.testing.assert_array_equal(S, R)
+    Q, R_np = np.linalg.qr(A)
+    np.testing.assert_allclose(np.abs(S), np.abs(R_np), atol=1e-12 * np.abs(R_np).max())
