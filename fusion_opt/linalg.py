@@ -295,12 +295,18 @@ def _reflect(X, j, Vt, k, rows):
 def apply_qt(Vt, n, rows, b):
     """b[:rows] <- Q^T b[:rows] with the n reflectors of `householder`."""
     for k in range(n):
-        t = 0.0
-        for i in range(k, rows):
-            t += Vt[k, i] * b[i]
-        t *= 2.0
-        for i in range(k, rows):
-            b[i] -= t * Vt[k, i]
+        apply_reflector(Vt, k, rows, b)
+
+
+@jit
+def apply_reflector(Vt, k, rows, b):
+    """b[k:rows] <- (I - 2 v v^T) b[k:rows] with v = Vt[k] (H_k of `householder`)."""
+    t = 0.0
+    for i in range(k, rows):
+        t += Vt[k, i] * b[i]
+    t *= 2.0
+    for i in range(k, rows):
+        b[i] -= t * Vt[k, i]
 
 
 @jit

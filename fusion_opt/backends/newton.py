@@ -36,7 +36,16 @@ import math
 import numpy as np
 
 from ..factored import evaluate_at, gap, gradient_at, model_at, sumsq, work
-from ..linalg import apply_qt, copy, fill, householder, householder_column, jit, pow2
+from ..linalg import (
+    apply_qt,
+    apply_reflector,
+    copy,
+    fill,
+    householder,
+    householder_column,
+    jit,
+    pow2,
+)
 from . import closed_form
 
 TOL = 1e-13
@@ -218,9 +227,7 @@ def _nearest(Et, x, P, z, r, cols, Elt, Vlt, Rls, qe):
         copy(x, z)
     else:
         fill(P, False)
-        k = 0
-        fill(qe, 0.0)
-        qe[M - 1] = 1.0
+        k = _factor_on(Et, P, cols, Elt, Vlt, Rls, qe)  # none: qe = e
     norm = np.sqrt(sumsq(Et) / N)
     tol = 10.0 * max(M, N) * _EPS * max(norm, 1.0)
     for _ in range(3 * N + 10):
@@ -337,18 +344,13 @@ def _append(j, k, Et, cols, Elt, Vlt, Rls, qe) -> int:
     """Node j's column appended to the QR of k columns (qe updated); returns k + 1, or -1
     when the buffers are full."""
     M = Et.shape[1]
-    if k < 0 or k == Elt.shape[0]:
+    if k == Elt.shape[0]:
         return -1
     cols[k] = j
     for p in range(M):
         Elt[k, p] = Et[j, p]
     householder_column(Elt, k, M, Vlt, Rls)
-    t = 0.0  # qe <- H_k qe (the first k reflectors are applied already)
-    for i in range(k, M):
-        t += Vlt[k, i] * qe[i]
-    t *= 2.0
-    for i in range(k, M):
-        qe[i] -= t * Vlt[k, i]
+    apply_reflector(Vlt, k, M, qe)  # the first k reflectors are in qe already
     return k + 1
 
 
