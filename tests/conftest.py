@@ -142,3 +142,15 @@ def tiny_run(tmp_path, study: str, config_text: str, outputs=()):
     for name in outputs:
         assert (folder / name).stat().st_size > 0, name
     return folder
+
+
+def refused_run(tmp_path, capsys, study: str, config_text: str) -> str:
+    """Run `study` from the command line on the configuration config_text into tmp_path;
+    asserts that it is refused (exit 2) before it writes anything; returns its stderr."""
+    from studies.__main__ import main
+
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(config_text)
+    assert main(["run", study, "--config", str(cfg), "--out", str(tmp_path)]) == 2
+    assert not (tmp_path / study).exists()
+    return capsys.readouterr().err

@@ -5,7 +5,7 @@ test_trackers_scenarios.py)."""
 
 import numpy as np
 import pytest
-from conftest import config_with, tiny_run
+from conftest import config_with, refused_run, tiny_run
 
 import fusion_opt as fo
 from studies import config as configs
@@ -54,11 +54,8 @@ def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
 
 
 def test_cli_refuses_a_bad_field_by_name(tmp_path, capsys):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text("[network]\nthreshold = -1.0\n")
-    assert main(["run", "network", "--config", str(cfg), "--out", str(tmp_path)]) == 2
-    assert "network.threshold must be a finite number > 0" in capsys.readouterr().err
-    assert not (tmp_path / "network").exists()
+    err = refused_run(tmp_path, capsys, "network", "[network]\nthreshold = -1.0\n")
+    assert "network.threshold must be a finite number > 0" in err
 
 
 @pytest.mark.parametrize("path, value, message", [

@@ -8,7 +8,7 @@ from datetime import datetime
 
 import numpy as np
 import pytest
-from conftest import config_with, tiny_run
+from conftest import config_with, refused_run, tiny_run
 
 pytest.importorskip("stonesoup")
 
@@ -277,11 +277,8 @@ def test_default_configurations_pass_and_have_enough_runs():
 
 
 def test_cli_refuses_a_bad_field_before_anything_runs(tmp_path, capsys):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text("[fusion]\nthreshold = -1.0\n")
-    assert main(["run", "stonesoup", "--config", str(cfg), "--out", str(tmp_path)]) == 2
-    assert "stonesoup: fusion.threshold must be a finite number > 0" in capsys.readouterr().err
-    assert not (tmp_path / "stonesoup").exists()
+    err = refused_run(tmp_path, capsys, "stonesoup", "[fusion]\nthreshold = -1.0\n")
+    assert "stonesoup: fusion.threshold must be a finite number > 0" in err
 
 
 # --- the command line -----------------------------------------------------------------------
