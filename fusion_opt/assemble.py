@@ -62,6 +62,8 @@ from __future__ import annotations
 import numpy as np
 
 from .factored import (
+    FACTORED,
+    GRADED,
     evaluate_at,
     gap,
     gradient_at,
@@ -72,7 +74,7 @@ from .factored import (
     vertex_error,
     work,
 )
-from .linalg import SMALL, apply_qt, copy, fill, jit, matmul_t, small_mul_t
+from .linalg import SMALL, apply_qt, copy, fill, inline, jit, matmul_t, small_mul_t
 from .prepare import scaled
 
 _LN2 = np.log(2.0)
@@ -88,22 +90,32 @@ def assemble(F, means, covs, q, E, k, vertex, pnorm, W, trace: bool, mean, cov, 
     finite (it overflows float64 in the original units)."""
     B, N, n = means.shape
     ws = work(N, n)
-    At, Vt, R, Ri, P, Bm, X, g, eta = ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.g, ws.z
-    col = 0 if trace else 1
     finite = True
     for b in range(B):
-        j = _vertex_or_interior(F[b], W[b], vertex[b, :, col], pnorm[b], covs[b], q[b], E[b],
-                                k[b], At, Vt, R, Ri, P, Bm, X, eta, trace)
-        if j >= 0:
-            fill(W[b], 0.0)
-            W[b, j] = 1.0
-            _vertex(F[b], means[b, j], covs[b, j], q[b, j], E[b, j], k[b], vertex[b, j], W[b],
-                    At, Vt, R, Ri, P, Bm, g, trace, mean[b], cov[b], stats[b])
-        else:
-            _interior(F[b], means[b], k[b], W[b], Vt, R, Ri, P, Bm, g, ws.rhs, trace, mean[b],
-                      cov[b], stats[b])
-        finite &= np.isfinite(stats[b, 0]) and _finite(cov[b]) and _finite(mean[b])
+        finite &= assemble_one(F[b], means[b], covs[b], q[b], E[b], k[b], vertex[b], pnorm[b],
+                               W[b], trace, mean[b], cov[b], stats[b], 0, ws.At, ws.Vt, ws.R,
+                               ws.Ri, ws.P, ws.B, ws.X, ws.g, ws.z, ws.rhs)
     return finite
+
+
+@inline
+def assemble_one(F, means, covs, q, E, k, vertex, pnorm, w, trace: bool, mean, cov, stats,
+                 state, At, Vt, R, Ri, P, B, X, g, eta, rhs) -> bool:
+    """`assemble` of one problem, with the buffers of `factored.Work` as arrays; state
+    says what they hold at w already (`newton.solve_one`: the QR, FACTORED, and the
+    gradient in g, GRADED), which is not computed again."""
+    col = 0 if trace else 1
+    j = _vertex_or_interior(F, w, vertex[:, col], pnorm, covs, q, E, k, At, Vt, R, Ri, P, B,
+                            X, eta, trace, state >= FACTORED)
+    if j >= 0:
+        fill(w, 0.0)
+        w[j] = 1.0
+        _vertex(F, means[j], covs[j], q[j], E[j], k, vertex[j], w, At, Vt, R, Ri, P, B, g,
+                trace, mean, cov, stats)
+    else:
+        _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
+                  state == GRADED)
+    return np.isfinite(stats[0]) and _finite(cov) and _finite(mean)
 
 
 @jit
@@ -116,9 +128,10 @@ def _finite(a) -> bool:
 
 @jit
 def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X, eta,
-                        trace: bool) -> int:
+                        trace: bool, factored: bool) -> int:
     """The node whose input is the result (best-vertex rule), or -1 for a fused one, when
-    the buffers are left factored at w. eta (N,) receives the scales' errors."""
+    the buffers are left factored at w (factored: they are already). eta (N,) receives
+    the scales' errors."""
     N, n = F.shape[0], F.shape[1]
     support, single = 0, -1
     for i in range(N):
@@ -128,9 +141,12 @@ def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X, 
     if support == 1:
         return single
     best = int(np.argmin(fv))
-    f, ok = evaluate_at(F, w, At, Vt, R, Ri, trace)
-    if not ok:
-        return best
+    if factored:
+        f = value(R, Ri, trace)
+    else:
+        f, ok = evaluate_at(F, w, At, Vt, R, Ri, trace)
+        if not ok:
+            return best
     eta_max = 0.0
     for i in range(N):
         eta[i] = _scale_error(q[i], E[i], N)
@@ -184,8 +200,10 @@ def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, At, Vt, R, Ri, P, B, g, trace
 
 
 @jit
-def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats):
-    """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`)."""
+def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
+              graded: bool):
+    """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`),
+    and whose gradient g holds when graded."""
     n = F.shape[1]
     r = 0
     for i in range(w.size):  # [sqrt(w_i) F_i m_i] in the row order of A
@@ -209,7 +227,8 @@ def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats):
         matmul_t(Ri, Ri, P)
     scaled(P, 1.0, -k, cov)  # sym(P) 2^k: back to the original units
     f = value(R, Ri, trace)
-    gradient_at(F, Ri, P, B, g, trace)
+    if not graded:
+        gradient_at(F, Ri, P, B, g, trace)
     gp = gap(g, w)
     if trace:
         stats[0], stats[1], stats[2] = np.ldexp(f, k), np.ldexp(gp, k), gp / abs(f)

@@ -282,7 +282,7 @@ def compile_part(part: str) -> float:
     prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
     a.W[:] = 1.0 / N
     if part == "solve":
-        newton.solve(a.F, True, a.W, False, a.W, a.rel, a.iters, False)
+        newton.solve(a.F, True, a.W, False, a.W, a.rel, a.iters)
     else:
         assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, True, a.mean, a.cov,
                  a.stats)

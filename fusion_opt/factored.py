@@ -75,6 +75,11 @@ _SQRT2 = np.sqrt(2.0)
 _EPS = np.finfo(np.float64).eps
 _ERR_C = 8.0
 
+# What a solver leaves in the buffers of a Work at the weights it returns (a state):
+# FACTORED, the QR of `factor` (At, Vt, R, Ri); GRADED, also the gradient of `gradient_at`
+# in g; 0, neither.
+FACTORED, GRADED = 1, 2
+
 Work = namedtuple("Work", [
     "At", "Vt", "R", "Ri", "P", "B", "X", "S", "lam", "U",  # QR (transposed) and n x n
     "zeta", "g", "Et",                                        # the SQP model

@@ -18,11 +18,11 @@ columns the products are loops written here; above it they call BLAS, and `eigh`
 Stale caches. numba keys each cached function by the source of its own file only, but a
 cached caller embeds the compiled code of the kernels it calls from other files: after an
 edit of `backends/newton.py` alone, `exact.fuse_exact` would keep loading the old solver.
-So `jit` is defined here, in the module every kernel module imports first, after
-`drop_stale_caches` has compared one hash of the sources of every module of the package
-that defines kernels (its files containing "@jit") with a stamp kept beside the caches,
-and dropped every cached kernel (*.nbi, *.nbc) of the package when they differ (1.3 ms
-added to an import of 0.5 s; see the function).
+So `jit` (and `inline`) is defined here, in the module every kernel module imports
+first, after `drop_stale_caches` has compared one hash of the sources of every module of
+the package that defines kernels (its files containing "@jit" or "@inline") with a stamp
+kept beside the caches, and dropped every cached kernel (*.nbi, *.nbc) of the package
+when they differ (1.3 ms added to an import of 0.5 s; see the function).
 """
 
 from __future__ import annotations
@@ -44,8 +44,8 @@ def drop_stale_caches(root: str) -> list[str]:
     """Drop numba's cached kernels of the package at `root` where its kernel sources
     changed; returns the cache folders emptied.
 
-    The hash covers every .py file under root that contains "@jit" (path and bytes;
-    sha256). Each source folder's kernels are cached where numba's own locators put them
+    The hash covers every .py file under root that contains "@jit" or "@inline" (path and
+    bytes; sha256). Each source folder's kernels are cached where numba's own locators put them
     (asked in numba's order, so the same folder numba uses): in-tree `__pycache__` when it
     is writable, else the user-wide cache (~/.cache/numba/<folder>_<hash of its path>), or
     NUMBA_CACHE_DIR when set. The stamp lives in that same folder, so a read-only install
@@ -70,7 +70,7 @@ def drop_stale_caches(root: str) -> list[str]:
                     data = f.read()
             except OSError:
                 continue
-            if b"@jit" in data:
+            if b"@jit" in data or b"@inline" in data:
                 digest.update(os.path.relpath(path, root).encode() + b"\0")
                 digest.update(hashlib.sha256(data).digest())
                 folders.setdefault(folder, path)
@@ -135,6 +135,10 @@ def _refresh(cache: str, stamp: str) -> bool:
 
 drop_stale_caches(os.path.dirname(os.path.abspath(__file__)))
 jit = njit(cache=True, error_model="numpy")
+# For a one-problem step of a batch loop that takes its ~30 work arrays one by one: a
+# compiled call passes each as a struct, and inlined into the loop (numba IR) the calls of
+# `newton.solve_one` and `assemble.assemble_one` cost 0.5 us a problem less at (4, 3).
+inline = njit(cache=True, error_model="numpy", inline="always")
 
 
 @jit

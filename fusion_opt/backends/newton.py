@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from ..factored import evaluate_at, gap, gradient_at, model_at, sumsq, work
+from ..factored import FACTORED, GRADED, evaluate_at, gap, gradient_at, model_at, sumsq, work
 from ..linalg import (
     apply_qt,
     apply_reflector,
@@ -43,6 +43,7 @@ from ..linalg import (
     fill,
     householder,
     householder_column,
+    inline,
     jit,
     pow2,
 )
@@ -54,37 +55,48 @@ _FLAT = 1e3 * np.finfo(np.float64).eps  # a decrease below this x |f| is under f
 _RHO = 0.1
 _LOCAL = 1e-4
 _STALL = 5
+_LAST = 1e-6  # from here a Newton step likely ends below TOL (quadratic convergence)
 _EPS = np.finfo(np.float64).eps
 
 
 @jit
-def solve(F, trace: bool, W0, use_start: bool, W, rel, iters, certify: bool = True):
+def solve(F, trace: bool, W0, use_start: bool, W, rel, iters):
     """Weights W (B, N), relative certificates rel (B,) and iterations (B,) for factors
     F (B, N, n, n); each SQP starts at W0[b] when use_start (a polish), else at uniform
-    weights. certify=False leaves rel of N = 2 unset (its certificate is an extra
-    evaluation there, which a caller that certifies the weights itself need not pay)."""
-    B, N, n = F.shape[0], F.shape[1], F.shape[2]
-    ws = work(N, n)
-    At, Vt, R, Ri, P, Bm, X, S = ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S
-    for b in range(B):
-        iters[b] = 0
-        if N == 1:
-            W[b, 0], rel[b] = 1.0, 0.0
-            continue
-        if N == 2:
-            w, iters[b] = closed_form.pair_weight_at(F[b], trace, At, Vt, R, Ri, P, Bm, X, S,
-                                                     ws.U, ws.lam, ws.abc)
-            W[b, 0], W[b, 1] = w, 1.0 - w
-            if certify:
-                rel[b] = _certificate(F[b], W[b], trace, At, Vt, R, Ri, P, Bm, ws.g)[2]
-        else:
-            if use_start:
-                copy(W[b], W0[b])
-            else:
-                fill(W[b], 1.0 / N)
-            rel[b], iters[b] = _sqp(F[b], trace, W[b], TOL, 50 + 4 * N, At, Vt, R, Ri, P, Bm, X,
-                                    S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
-                                    ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
+    weights."""
+    ws = work(F.shape[1], F.shape[2])
+    for b in range(F.shape[0]):
+        rel[b], iters[b], _ = solve_one(F[b], trace, W0[b], use_start, W[b], ws.At,
+                                        ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S, ws.U,
+                                        ws.lam, ws.abc, ws.zeta, ws.g, ws.Et, ws.x, ws.z,
+                                        ws.mask, ws.r, ws.cols, ws.Elt, ws.Vlt, ws.Rls,
+                                        ws.qe, ws.w_try, ws.best_w)
+
+
+@inline
+def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S, U, lam,
+              abc, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
+    """`solve` of one problem, F (N, n, n), into w (N,), with the buffers of `Work` as
+    arrays; returns (rel, iterations, state): state FACTORED when the buffers hold the QR
+    of the returned w (At, Vt, R, Ri: what `factored.evaluate_at` leaves), GRADED when g
+    also holds `factored.gradient_at` there, else 0 (`assemble.py` need not compute them
+    again)."""
+    N = F.shape[0]
+    if N == 1:
+        w[0] = 1.0
+        return 0.0, 0, 0
+    if N == 2:
+        w[0], it = closed_form.pair_weight_at(F, trace, At, Vt, R, Ri, P, Bm, X, S, U, lam,
+                                              abc)
+        w[1] = 1.0 - w[0]
+        rel = _certificate(F, w, trace, At, Vt, R, Ri, P, Bm, g)[2]
+        return rel, it, GRADED if rel < np.inf else 0
+    if use_start:
+        copy(w, w0)
+    else:
+        fill(w, 1.0 / N)
+    return _sqp(F, trace, w, TOL, 50 + 4 * N, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z,
+                mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w)
 
 
 @jit
@@ -116,22 +128,30 @@ def _certificate(F, w, trace: bool, At, Vt, R, Ri, P, B, g):
 def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
     """One problem (module docstring): F (N, n, n), w (N,) a start on the simplex with Y(w)
     positive definite, overwritten with the iterate of the best certificate. Returns that
-    certificate (relative, of the model's gradient) and the iteration count."""
-    return _sqp(F, trace, w, tol, max_iter, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X,
-                ws.S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols, ws.Elt,
-                ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
+    certificate (relative) and the iteration count."""
+    rel, it, _ = _sqp(F, trace, w, tol, max_iter, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
+                      ws.X, ws.S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
+                      ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
+    return rel, it
 
 
 @jit
 def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, S, zeta,
          g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
-    """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why)."""
+    """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why). A
+    point the last certificate says is likely final (below _LAST) is certified by its
+    gradient alone (`factored.gradient_at`, half the cost of the model), the model made
+    only if it is not."""
     N = F.shape[0]
     f, _ = evaluate_at(F, w, At, Vt, R, Ri, trace)
     copy(best_w, w)
     best, rel, it, stalled = np.inf, np.inf, 0, 0
     while True:
-        model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0 if rel <= _LOCAL else _RHO)
+        graded = rel <= _LAST
+        if graded:
+            gradient_at(F, Ri, P, Bm, g, trace)
+        else:
+            model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0 if rel <= _LOCAL else _RHO)
         rel = gap(g, w) / (abs(f) if trace else 1.0)
         if rel < best:
             best, stalled = rel, 0
@@ -140,6 +160,8 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, 
             stalled += 1     # a better point) the certificate need not fall each step
         if best <= tol or it >= max_iter or stalled >= _STALL:
             break
+        if graded:
+            model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0)
         it += 1
         for i in range(N):
             mask[i] = w[i] > 0.0
@@ -147,8 +169,10 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, 
         f = _step_towards(F, trace, w, x, g, w_try, At, Vt, R, Ri, f)
         if rel <= _LOCAL and not _equal(w, x):
             f = _whole_step_if_better(F, trace, w, x, g, At, Vt, R, Ri, P, Bm, f)
-    copy(w, best_w)
-    return best, it
+    if not _equal(w, best_w) or not f < np.inf:  # the buffers hold another point
+        copy(w, best_w)
+        return best, it, 0
+    return best, it, GRADED if graded else FACTORED
 
 
 @jit
