@@ -167,6 +167,41 @@ def test_start_at_a_vertex_reaches_the_same_optimum():
     assert abs(f[0] - f[1]) <= 1e-12 * f[0]
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_design_steps_are_the_multiplicative_algorithm(kind):
+    """The trace start: two steps w_i <- w_i tr(P Y_i P) / tr(P) from uniform weights,
+    against the same steps from inverted covariances in numpy; they stay on the simplex,
+    positive, and each lowers tr P (as the algorithm does on these problems)."""
+    covs = instance(np.random.default_rng(12), 5, 3, kind)
+    F, k = _factors(covs)
+    ws = work(5, 3)
+    w = np.full(5, 0.2)
+    newton._design_steps(F, w, 2, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g)
+    Ys = np.linalg.inv(covs)
+    ref, f = np.full(5, 0.2), [objective(covs, np.full(5, 0.2), "trace")]
+    for _ in range(2):
+        P = np.linalg.inv(np.einsum("i,iab->ab", ref, Ys))
+        ref = ref * np.einsum("ab,ibc,ca->i", P, Ys, P) / np.trace(P)
+        f.append(objective(covs, ref, "trace"))
+    # (the reference inverts covariances of condition up to 3e10 here and loses eps x that:
+    # 2e-12 measured, so the match is absolute)
+    assert np.allclose(w, ref, rtol=0, atol=1e-14 * np.linalg.cond(covs).max())
+    assert (w > 0).all() and abs(w.sum() - 1.0) <= 8 * np.finfo(float).eps
+    assert f[2] < f[1] < f[0]
+
+
+def test_an_optimum_at_a_node_is_that_node_exactly_after_design_steps():
+    """Design steps never reach a zero weight; the SQP step after them does. n = 1, where
+    the node of the largest information is the optimum (a fuzz case of test_fuzz.py: after
+    the design steps the weights were (1.6e-17, 1.2e-30, 1.0) with a certificate of 0,
+    and were returned as such, no longer the node exactly)."""
+    covs = np.array([3.84004971e-16, 1.42701748e-09, 1.55231520e-24]).reshape(3, 1, 1)
+    means = np.array([[1.0], [2.0], [3.0]])
+    r = fo.bci(means, covs, "trace")
+    assert np.array_equal(r.weights, [0.0, 0.0, 1.0])
+    assert r.mean[0] == 3.0 and r.cov[0, 0] == covs[2, 0, 0]
+
+
 def test_zero_failures_on_many_ill_conditioned():
     rng = np.random.default_rng(11)
     for k in range(60):

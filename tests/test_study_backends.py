@@ -102,7 +102,10 @@ def test_a_spoiled_backend_shows_as_a_large_gap(tmp_path, monkeypatch):
     single = {(r["call"], r["backend"]): r for r in _rows(tmp_path) if r["mode"] == "single"}
     assert float(single[RAW, "slsqp"]["worst_objective_gap"]) > 1e-3
     assert float(single[RAW, "slsqp"]["worst_optimality_gap"]) > 1e-3
-    assert float(single[BCI, "newton"]["worst_objective_gap"]) == 0.0
+    # newton's own weights, and the spoiled ones polished by Newton from a vertex: the
+    # same optimum, to rounding (either may be the "best" by an ulp)
+    assert float(single[BCI, "newton"]["worst_objective_gap"]) <= 1e-15
+    assert float(single[BCI, "slsqp"]["worst_objective_gap"]) <= 1e-15
 
 
 def test_a_failing_backend_is_counted_not_fatal(tmp_path, monkeypatch):

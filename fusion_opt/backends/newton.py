@@ -16,7 +16,9 @@ model of f about w is then, up to a constant,
 with W = I - (1 - rho) u u^T, u = zeta / |zeta|. rho = 1 is Newton's model; f is homogeneous
 in Y (f(tY) = f / t, resp. f - n log t), along u Newton's model is poor far from the
 optimum, and rho = 0.1 keeps 1% of its curvature there; below a relative certificate of
-1e-4, rho = 1. The minimiser of q is the point of conv{d_i}, d_i = W z_i - (rho c + 1/rho)
+1e-4, and after a step the line search shortened (where the damped model overshot: on an
+ill-conditioned problem it did so again at every step, each shortened to nothing), rho = 1.
+The minimiser of q is the point of conv{d_i}, d_i = W z_i - (rho c + 1/rho)
 zeta, nearest the origin, found by non-negative least squares (Lawson & Hanson 1974,
 ch. 23: min |E u - e| over u >= 0 with E = [d_i; 1], e = (0, 1), lam = u / sum u, the d_i
 first scaled to unit size, which does not move lam), warm started on the support of w;
@@ -26,7 +28,9 @@ where the decrease of f can be below f's own rounding on an ill-conditioned prob
 whole step to lam is taken instead if its certificate is better than that of the line
 search's point. It stops on the certificate (relative to f for "trace", absolute for
 "logdet") or, at rounding level, after 5 steps below 1e-4 without a better one; it returns
-the iterate with the best certificate.
+the iterate with the best certificate. For "trace" it starts from two steps of the
+multiplicative algorithm of optimal design (`_design_steps`) from uniform weights, which
+save more SQP steps than they cost, and then takes at least one SQP step.
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ _FLAT = 1e3 * np.finfo(np.float64).eps  # a decrease below this x |f| is under f
 _RHO = 0.1
 _LOCAL = 1e-4
 _STALL = 5
+_DESIGN_STEPS = 2
 _LAST = 1e-6  # from here a Newton step likely ends below TOL (quadratic convergence)
 _EPS = np.finfo(np.float64).eps
 
@@ -91,12 +96,39 @@ def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S
         w[1] = 1.0 - w[0]
         rel = _certificate(F, w, trace, At, Vt, R, Ri, P, Bm, g)[2]
         return rel, it, GRADED if rel < np.inf else 0
+    designed = trace and not use_start
     if use_start:
         copy(w, w0)
     else:
         fill(w, 1.0 / N)
-    return _sqp(F, trace, w, TOL, 50 + 4 * N, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z,
-                mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w)
+        if designed:
+            _design_steps(F, w, _DESIGN_STEPS, At, Vt, R, Ri, P, Bm, g)
+    # at least one SQP step after design steps: theirs never reach a zero weight, the
+    # nearest point does (an optimum at a node is returned as that node exactly)
+    return _sqp(F, trace, w, TOL, 50 + 4 * N, 1 if designed else 0, At, Vt, R, Ri, P, Bm, X,
+                S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w)
+
+
+@jit
+def _design_steps(F, w, steps: int, At, Vt, R, Ri, P, B, g):
+    """Steps of the multiplicative algorithm of optimal design (Silvey, Titterington &
+    Torsney 1978) for "trace": w_i <- w_i tr(P Y_i P) / f, which keeps w on the simplex
+    (sum_i w_i tr(P Y_i P) = tr(P) = f) and positive. From uniform weights, two of them
+    (an evaluation and a gradient each, 0.7 us at (n, N) = (4, 3)) save 1.3 to 1.5 SQP
+    steps (1.5 us each) there; for "logdet" they saved fewer steps than they cost. A step
+    whose numbers are not finite is not taken."""
+    N = w.size
+    for _ in range(steps):
+        if not evaluate_at(F, w, At, Vt, R, Ri, True)[1]:
+            return
+        gradient_at(F, Ri, P, B, g, True)
+        s = 0.0
+        for i in range(N):
+            s -= w[i] * g[i]
+        if not 0.0 < s < np.inf:
+            return
+        for i in range(N):
+            w[i] *= -g[i] / s
 
 
 @jit
@@ -129,36 +161,38 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
     """One problem (module docstring): F (N, n, n), w (N,) a start on the simplex with Y(w)
     positive definite, overwritten with the iterate of the best certificate. Returns that
     certificate (relative) and the iteration count."""
-    rel, it, _ = _sqp(F, trace, w, tol, max_iter, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
+    rel, it, _ = _sqp(F, trace, w, tol, max_iter, 0, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
                       ws.X, ws.S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
                       ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
     return rel, it
 
 
 @jit
-def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, S, zeta,
-         g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
-    """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why). A
+def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, At, Vt, R, Ri, P, Bm,
+         X, S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
+    """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why), taking
+    at least min_iter steps; of iterates with equal certificates the later is kept. A
     point the last certificate says is likely final (below _LAST) is certified by its
     gradient alone (`factored.gradient_at`, half the cost of the model), the model made
     only if it is not."""
     N = F.shape[0]
     f, _ = evaluate_at(F, w, At, Vt, R, Ri, trace)
     copy(best_w, w)
-    best, rel, it, stalled = np.inf, np.inf, 0, 0
+    best, rel, it, stalled, shortened = np.inf, np.inf, 0, 0, False
     while True:
         graded = rel <= _LAST
         if graded:
             gradient_at(F, Ri, P, Bm, g, trace)
         else:
-            model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0 if rel <= _LOCAL else _RHO)
+            model_at(F, Ri, zeta, Et, g, Bm, X, S, trace,
+                     1.0 if rel <= _LOCAL or shortened else _RHO)
         rel = gap(g, w) / (abs(f) if trace else 1.0)
-        if rel < best:
+        if rel <= best:
             best, stalled = rel, 0
             copy(best_w, w)
         elif rel <= _LOCAL:  # far from the optimum (also after a change of support, from
             stalled += 1     # a better point) the certificate need not fall each step
-        if best <= tol or it >= max_iter or stalled >= _STALL:
+        if (best <= tol and it >= min_iter) or it >= max_iter or stalled >= _STALL:
             break
         if graded:
             model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0)
@@ -167,7 +201,8 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, At, Vt, R, Ri, P, Bm, X, 
             mask[i] = w[i] > 0.0
         _nearest(Et, x, mask, z, r, cols, Elt, Vlt, Rls, qe)
         f = _step_towards(F, trace, w, x, g, w_try, At, Vt, R, Ri, f)
-        if rel <= _LOCAL and not _equal(w, x):
+        shortened = not _equal(w, x)
+        if rel <= _LOCAL and shortened:
             f = _whole_step_if_better(F, trace, w, x, g, At, Vt, R, Ri, P, Bm, f)
     if not _equal(w, best_w) or not f < np.inf:  # the buffers hold another point
         copy(w, best_w)
