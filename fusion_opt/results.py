@@ -110,16 +110,21 @@ class FusionResult:
             object.__setattr__(self, "status", Status(self.status))
 
     @classmethod
-    def owning(cls, weights, mean, cov, **fields) -> FusionResult:
+    def owning(cls, weights, mean, cov, *, objective, gap, status, backend, solve_time,
+               iterations, method, criterion, polish_iterations, weights_are) -> FusionResult:
         """The result of every field given by name, taking ownership of the float64 arrays
         weights, mean and cov (the caller's views, which nothing else writes to), made
         read-only in place, and of a Status: what __init__ does without its copies and
-        checks, which cost a third of a small fusion."""
-        weights.setflags(write=False)
-        mean.setflags(write=False)
-        cov.setflags(write=False)
+        checks, which cost a third of a small fusion (each field named, not collected
+        as **fields: 0.14 us less of 1.8)."""
+        weights.flags.writeable = False
+        mean.flags.writeable = False
+        cov.flags.writeable = False
         result = object.__new__(cls)
-        result.__dict__.update(weights=weights, mean=mean, cov=cov, **fields)
+        result.__dict__.update(
+            weights=weights, mean=mean, cov=cov, objective=objective, gap=gap, status=status,
+            backend=backend, solve_time=solve_time, iterations=iterations, method=method,
+            criterion=criterion, polish_iterations=polish_iterations, weights_are=weights_are)
         return result
 
     def __repr__(self) -> str:
