@@ -7,12 +7,14 @@ import math
 import cvxpy as cp
 import numpy as np
 import pytest
-from conftest import instance, objective
+from conftest import EXTREME_KINDS, extreme_instance, instance, objective
 
 import fusion_opt as fo
 from fusion_opt import core, factored
+from fusion_opt.assemble import assemble
 from fusion_opt.backends import closed_form, newton
 from fusion_opt.criteria import evaluate
+from fusion_opt.detection import detection_split
 from fusion_opt.factored import factor_at, model, work
 
 CRITERIA = ("trace", "logdet")
@@ -200,6 +202,43 @@ def test_an_optimum_at_a_node_is_that_node_exactly_after_design_steps():
     r = fo.bci(means, covs, "trace")
     assert np.array_equal(r.weights, [0.0, 0.0, 1.0])
     assert r.mean[0] == 3.0 and r.cov[0, 0] == covs[2, 0, 0]
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_assemble_on_the_solvers_factors_equals_assemble_on_its_own(criterion):
+    """fuse_exact hands assemble the QR (and gradient) the solver leaves at its weights;
+    computing them anew (newton.solve, then assemble of the batch) gives the same numbers,
+    bit for bit, on every hard kind, N from 1 to 8, BCI and MBCI scales."""
+    rng = np.random.default_rng(13)
+    for kind in EXTREME_KINDS:
+        for N, n in ((1, 3), (2, 4), (3, 4), (8, 2)):
+            B = 12
+            covs = np.stack([extreme_instance(rng, N, n, kind, spread=6) for _ in range(B)])
+            means = rng.standard_normal((B, N, n))
+            for scales in (None, np.linspace(0.5, 0.95, N)):
+                q, E = (core._unit_scales(B, N) if scales is None else (np.broadcast_to(
+                    x, (B, N)).copy() for x in detection_split(scales, 0.9, N)))
+                one, two = core._Arrays(B, N, n), core._Arrays(B, N, n)
+                trace = criterion == "trace"
+                assert core.fuse_exact(means, covs, q, E, trace, one.F, one.k, one.vertex,
+                                       one.pnorm, one.where, one.W, one.rel, one.iters,
+                                       one.mean, one.cov, one.stats) == 0
+                core._prepare(means, covs, q, E, two, core._NAMES, True)
+                newton.solve(two.F, trace, two.W, False, two.W, two.rel, two.iters)
+                assert assemble(two.F, means, covs, q, E, two.k, two.vertex, two.pnorm, two.W,
+                                trace, two.mean, two.cov, two.stats)
+                for name in ("W", "mean", "cov", "stats", "iters"):
+                    assert np.array_equal(getattr(one, name), getattr(two, name)), (kind, N)
+
+
+def test_equal_certificates_count_as_a_stall():
+    """Of equal certificates the later iterate is kept, and counted as a stall: when a tie
+    reset the count, this ill-conditioned problem cycled at rounding level to the
+    iteration cap (62 steps; 15 now)."""
+    rng = np.random.default_rng(9)
+    covs = instance(rng, 300 * 3, 4, "ill-conditioned").reshape(300, 3, 4, 4)[32]
+    r = fo.bci(np.zeros((3, 4)), covs, "trace")
+    assert r.status == "optimal" and r.iterations <= 20
 
 
 def test_zero_failures_on_many_ill_conditioned():

@@ -187,9 +187,10 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, At, Vt, R,
             model_at(F, Ri, zeta, Et, g, Bm, X, S, trace,
                      1.0 if rel <= _LOCAL or shortened else _RHO)
         rel = gap(g, w) / (abs(f) if trace else 1.0)
-        if rel <= best:
-            best, stalled = rel, 0
+        if rel <= best:  # of equal certificates the later (which counts as a stall)
             copy(best_w, w)
+        if rel < best:
+            best, stalled = rel, 0
         elif rel <= _LOCAL:  # far from the optimum (also after a change of support, from
             stalled += 1     # a better point) the certificate need not fall each step
         if (best <= tol and it >= min_iter) or it >= max_iter or stalled >= _STALL:
