@@ -159,10 +159,12 @@ def test_the_exact_path_links_the_parts_compiled_by_other_processes(tmp_path):
     first = textwrap.dedent("""
         import numpy as np
         import fusion_opt as fo
-        from fusion_opt.assemble import assemble
+        from fusion_opt import assemble
         from fusion_opt.backends import newton
         fo.bci(np.zeros((3, 2)), np.stack([np.eye(2)] * 3))
-        for kernel in (newton._sqp, assemble):  # the solver's and the estimates' bulk
+        # the solver's and the estimates' bulk (fuse_exact inlines the one-problem steps
+        # that call them, `newton.solve_one` and `assemble.assemble_one`)
+        for kernel in (newton._sqp, assemble._vertex_or_interior):
             print(sum(kernel.stats.cache_hits.values()), sum(kernel.stats.cache_misses.values()))
     """)
     out = subprocess.run([sys.executable, "-c", first], env=env, check=True,
