@@ -270,8 +270,8 @@ def compile_part(part: str) -> float:
     their certificate) for the array types `fuse_exact` calls them with; returns the
     seconds it took. `fuse_exact` links the kernels it calls from their own cache
     entries, so on a machine whose cache is cold, two processes compiling the parts at
-    once before the first fusion shorten it: 42 s in one process, about 20 s + 7 s
-    (measured on 2 cores; `studies/runner.py` has its workers do it)."""
+    once before the first fusion shorten it: 47 s in one process, about 25 s + 7 s
+    (measured on 2 cores at b9e182d; `studies/runner.py` has its workers do it)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()
