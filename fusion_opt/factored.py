@@ -164,7 +164,7 @@ def gradient_at(F, Ri, G, B, g, trace: bool):
         copy(G, Ri)
     for i in range(F.shape[0]):
         if small:
-            node_mul(F, i, G, B)
+            node_mul(F, i, G, B, not trace)  # G = R^-1 for "logdet"
         else:
             matmul(F[i], G, B)
         g[i] = -sumsq(B)
@@ -223,7 +223,7 @@ def objective_error(F, w, R, Ri, G, B, X, pnorm, f, trace: bool) -> float:
     for i in range(F.shape[0]):
         if w[i] > 0.0:
             if small:
-                node_mul(F, i, G, B)     # F_i G
+                node_mul(F, i, G, B, not trace)  # F_i G
                 node_tmul(F, i, B, X)    # Y_i P, resp. Y_i R^-1
             else:
                 matmul(F[i], G, B)
@@ -546,7 +546,7 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
     small = n <= SMALL
     for i in range(N):
         if small:
-            node_mul(F, i, Ri, B)
+            node_mul(F, i, Ri, B, True)
             small_gram(B, X)
         else:
             matmul(F[i], Ri, B)
@@ -554,7 +554,7 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
         Z = X
         if trace:
             if small:
-                small_mul(Ri, X, S)
+                small_mul(Ri, X, S, True)
             else:
                 matmul(Ri, X, S)
             Z = S

@@ -34,7 +34,7 @@ def test_small_products_sum_in_the_order_of_k(n, m):
     rng = np.random.default_rng([121, n, m])
     A, B = rng.standard_normal((n, m)), rng.standard_normal((m, n + 1))
     C = np.empty((n, n + 1))
-    linalg.small_mul(A, B, C)
+    linalg.small_mul(A, B, C, False)
     np.testing.assert_array_equal(C, _one_at_a_time(A, B))
     Bt = np.ascontiguousarray(B.T)
     linalg.small_mul_t(A, Bt, C)
@@ -42,12 +42,32 @@ def test_small_products_sum_in_the_order_of_k(n, m):
     G = np.empty((m, m))
     linalg.small_gram(A, G)
     np.testing.assert_array_equal(G, _one_at_a_time(A.T, A))
-    F = rng.standard_normal((3, m, m))
-    D, E = rng.standard_normal((m, n)), np.empty((m, n))
-    linalg.node_mul(F, 2, D, E)
-    np.testing.assert_array_equal(E, _one_at_a_time(F[2], D))
-    linalg.node_tmul(F, 1, D, E)
-    np.testing.assert_array_equal(E, _one_at_a_time(F[1].T, D))
+
+
+@pytest.mark.parametrize("m,cols", [(1, 1), (3, 3), (4, 4), (5, 7), (6, 6), (7, 5), (12, 12),
+                                    (16, 9)])
+def test_triangular_products_skip_zeros_and_no_bit(m, cols):
+    """The products with a triangular factor skip its zeros and give, bit for bit, the full
+    product summed in the order of k (zeros included), also where sums cancel to 0."""
+    rng = np.random.default_rng([123, m, cols])
+    F = np.tril(rng.integers(-2, 3, (3, m, m)).astype(float))  # small integers: exact 0 sums
+    F[1] = np.tril(rng.standard_normal((m, m)))
+    for D in (rng.standard_normal((m, cols)), rng.integers(-2, 3, (m, cols)).astype(float)):
+        E = np.full((m, cols), np.nan)
+        for i in range(3):
+            linalg.node_mul(F, i, D, E, False)
+            np.testing.assert_array_equal(E, _one_at_a_time(F[i], D))
+            linalg.node_tmul(F, i, D, E)
+            np.testing.assert_array_equal(E, _one_at_a_time(F[i].T, D))
+        U = np.triu(D[:, :m]) if cols >= m else None
+        if U is not None:
+            Em, Sq = np.full((m, m), np.nan), np.full((m, m), np.nan)
+            for i in range(3):
+                linalg.node_mul(F, i, U, Em, True)
+                np.testing.assert_array_equal(Em, _one_at_a_time(F[i], U))
+            linalg.small_mul(U, D[:, :m], Sq, True)
+            np.testing.assert_array_equal(Sq, _one_at_a_time(U, D[:, :m]))
+            np.testing.assert_array_equal(np.signbit(Sq), np.signbit(_one_at_a_time(U, D[:, :m])))
 
 
 @pytest.mark.parametrize("n,rows", [(1, 3), (2, 4), (3, 17), (4, 12), (5, 17), (6, 30),
