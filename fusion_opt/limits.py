@@ -10,7 +10,8 @@ conic_memory: the estimated memory of a conic solve by "clarabel" / "clarabel-di
     (n (2n + 1))^2 entries in the KKT system, counted twice for its factorisation
     (about 1 GB at n = 64, 100 GB at n = 200).
 working_memory: the estimated memory of the native solvers' work arrays for one problem:
-    the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles.
+    the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles, and five
+    stacks of N n x n matrices (factors, their QR, a subproblem's factors).
 """
 
 from __future__ import annotations
@@ -44,4 +45,4 @@ def conic_bytes(n: int, N: int) -> float:
 
 def working_bytes(n: int, N: int) -> float:
     """Estimated bytes of the native solvers' work arrays for one problem."""
-    return 8.0 * (3.0 * (n * n + 1) * N + 4.0 * N * n * n)
+    return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n)

@@ -111,6 +111,38 @@ def test_many_nodes_match_clarabel_with_a_small_support(n, kind, criterion):
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
+def test_pricing_finds_support_nodes_outside_the_first_working_set(criterion):
+    """N > 2 (m + 1), m = n (n + 1) / 2: the SQP works on a set of nodes priced out on all
+    of them (newton._priced). On problems whose optimum uses a node outside the first set
+    (the m + 1 most negative gradients at uniform weights, from inverted informations in
+    numpy here), the solver (called directly: fo.bci would rescue a failure from Clarabel's
+    weights) certifies its weights, which equal those of the SQP on all nodes from uniform
+    weights (newton.sqp) and are no worse than Clarabel's, in objective."""
+    rng, outside, trace = np.random.default_rng(12), 0, criterion == "trace"
+    for t in range(40):
+        n = 2 + t % 2
+        m1 = n * (n + 1) // 2 + 1
+        N = 3 * m1 + 5
+        covs = instance(rng, N, n, KINDS[t // 2 % 2])
+        Ys = np.linalg.inv(covs)
+        P = np.linalg.inv(Ys.mean(0))
+        g = -np.einsum("ab,ibc,ca->i", P, Ys, P) if trace else -np.einsum("ab,iba->i", P, Ys)
+        F, _ = _factors(covs)
+        W, rel, its = np.empty((1, N)), np.empty(1), np.empty(1, dtype=np.int64)
+        newton.solve(F[None], trace, W, False, W, rel, its)
+        assert rel[0] <= newton.TOL
+        outside += not set(np.flatnonzero(W[0])) <= set(np.argsort(g)[:m1])
+        w_all, rel_all, _ = _sqp(covs, criterion)
+        ref = fo.bci(np.zeros((N, n)), covs, criterion, "clarabel", polish=False)
+        # all in the factor form (numpy's inverses lose 1e-9 here)
+        f, f_all, f_ref = (evaluate_f(F, w, criterion) for w in (W[0], w_all, ref.weights))
+        scale = abs(f_all) if trace else 1.0
+        assert rel_all <= newton.TOL and abs(f - f_all) <= 1e-12 * scale
+        assert f <= f_ref + 1e-12 * scale
+    assert outside >= 2  # the pricing rounds were exercised
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
 def test_sqp_on_pairs_equals_the_one_dimensional_method(criterion):
     """Two independent algorithms for N = 2: the SQP and the 1-D method of closed_form."""
     rng = np.random.default_rng(10)
