@@ -36,8 +36,8 @@ def fuse_exact(means, covs, q, E, trace: bool, F, k, vertex, pnorm, where, W, re
     for b in range(F.shape[0]):
         rel[b], iters[b], state = solve_one(
             F[b], trace, W[b], False, W[b], ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S,
-            (ws.U, ws.lam, ws.abc), ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
-            ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w, (ws.FS, ws.wS, ws.idx, ws.inS))
+            ws.U, ws.lam, ws.abc, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
+            ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
         finite &= assemble_one(F[b], means[b], covs[b], q[b], E[b], k[b], vertex[b], pnorm[b],
                                W[b], trace, mean[b], cov[b], stats[b], state, ws.At, ws.Vt,
                                ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.g, ws.z, ws.rhs)

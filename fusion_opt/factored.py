@@ -85,7 +85,6 @@ Work = namedtuple("Work", [
     "zeta", "g", "Et",                                        # the SQP model
     "x", "z", "mask", "r", "cols", "Elt", "Vlt", "Rls", "qe", # the nearest point
     "w_try", "best_w", "rhs", "abc",                          # steps, means, pairs
-    "FS", "wS", "idx", "inS",                                 # a subproblem (pricing)
 ])
 
 
@@ -104,8 +103,7 @@ def work(N: int, n: int) -> Work:
                 np.empty(N), np.empty(N), np.zeros(N, dtype=np.bool_), np.empty(m + 1),
                 np.empty(N, dtype=np.int64), np.empty((K, m + 1)), np.empty((K, m + 1)),
                 np.empty((K, K)), np.empty(m + 1), np.empty(N), np.empty(N), np.empty(N * n),
-                np.empty((3, n)), np.empty((N, n, n)), np.empty(N), np.empty(N, dtype=np.int64),
-                np.zeros(N, dtype=np.bool_))
+                np.empty((3, n)))
 
 
 @jit

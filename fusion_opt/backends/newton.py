@@ -89,37 +89,33 @@ def solve(F, trace: bool, W0, use_start: bool, W, rel, iters):
     ws = work(F.shape[1], F.shape[2])
     for b in range(F.shape[0]):
         rel[b], iters[b], _ = solve_one(F[b], trace, W0[b], use_start, W[b], ws.At,
-                                        ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S,
-                                        (ws.U, ws.lam, ws.abc), ws.zeta, ws.g, ws.Et, ws.x,
-                                        ws.z, ws.mask, ws.r, ws.cols, ws.Elt, ws.Vlt, ws.Rls,
-                                        ws.qe, ws.w_try, ws.best_w,
-                                        (ws.FS, ws.wS, ws.idx, ws.inS))
+                                        ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.X, ws.S, ws.U,
+                                        ws.lam, ws.abc, ws.zeta, ws.g, ws.Et, ws.x, ws.z,
+                                        ws.mask, ws.r, ws.cols, ws.Elt, ws.Vlt, ws.Rls,
+                                        ws.qe, ws.w_try, ws.best_w)
 
 
 @inline
-def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S, pair,
-              zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w, subset):
+def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S, U, lam,
+              abc, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
     """`solve` of one problem, F (N, n, n), into w (N,), with the buffers of `Work` as
-    arrays, those of pairs (U, lam, abc) and of `_priced` (FS, wS, idx, inS) as tuples
-    (numba inlines a function of at most 30 arguments); returns (rel, iterations, state):
-    state FACTORED when the buffers hold the QR of the returned w (At, Vt, R, Ri: what
-    `factored.evaluate_at` leaves), GRADED when g also holds `factored.gradient_at` there,
-    else 0 (`assemble.py` need not compute them again)."""
+    arrays (numba inlines a function of at most 30 arguments); returns (rel, iterations,
+    state): state FACTORED when the buffers hold the QR of the returned w (At, Vt, R, Ri:
+    what `factored.evaluate_at` leaves), GRADED when g also holds `factored.gradient_at`
+    there, else 0 (`assemble.py` need not compute them again)."""
     N = F.shape[0]
     if N == 1:
         w[0] = 1.0
         return 0.0, 0, 0
     if N == 2:
-        U, lam, abc = pair
         w[0], it = closed_form.pair_weight_at(F, trace, At, Vt, R, Ri, P, Bm, X, S, U, lam,
                                               abc)
         w[1] = 1.0 - w[0]
         rel = _certificate(F, w, trace, At, Vt, R, Ri, P, Bm, g)[2]
         return rel, it, GRADED if rel < np.inf else 0
     if not use_start and N > _priced_above(F.shape[1]):
-        FS, wS, idx, inS = subset
         return _priced(F, trace, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, mask, r,
-                       cols, Elt, Vlt, Rls, qe, w_try, best_w, FS, wS, idx, inS)
+                       cols, Elt, Vlt, Rls, qe, w_try, best_w)
     designed = trace and not use_start
     if use_start:
         copy(w, w0)
@@ -144,7 +140,7 @@ def _priced_above(n: int) -> int:
 
 @jit
 def _priced(F, trace: bool, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, mask, r, cols,
-            Elt, Vlt, Rls, qe, w_try, best_w, FS, wS, idx, inS):
+            Elt, Vlt, Rls, qe, w_try, best_w):
     """Many nodes (N > `_priced_above`): the SQP on a working set of nodes, priced out on
     all of them (column generation; module docstring). With m = n (n + 1) / 2, the set
     starts as the m + 1 nodes of the most negative gradient at uniform weights; the SQP
@@ -155,14 +151,17 @@ def _priced(F, trace: bool, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, ma
     negative first) and the SQP goes on from its weights. The set only grows, so this
     ends, at worst with all N nodes. FS, wS, idx, inS hold the set: its factors, weights,
     node indices (ascending, so that its QR is the whole problem's at the same weights)
-    and mask. Returns as `solve_one`, the certificate that of all N nodes."""
+    and mask (made here: at few nodes, where this does not run, four more buffers in
+    `Work` cost 0.1 us a call). Returns as `solve_one`, the certificate that of all N
+    nodes."""
     N, n = F.shape[0], F.shape[1]
     add = n * (n + 1) // 2 + 1
+    FS, wS = np.empty_like(F), np.empty(N)
+    idx, inS = np.empty(N, dtype=np.int64), np.zeros(N, dtype=np.bool_)
     fill(w, 1.0 / N)
     if not evaluate_at(F, w, At, Vt, R, Ri, trace)[1]:
         return np.inf, 0, 0
     gradient_at(F, Ri, P, Bm, g, trace)
-    fill(inS, False)
     order = np.argsort(g)
     for t in range(add):
         inS[order[t]] = True
