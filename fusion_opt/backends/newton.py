@@ -113,7 +113,7 @@ def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S
         w[1] = 1.0 - w[0]
         rel = _certificate(F, w, trace, At, Vt, R, Ri, P, Bm, g)[2]
         return rel, it, GRADED if rel < np.inf else 0
-    if not use_start and N > _priced_above(F.shape[1]):
+    if not use_start and N > _priced_above(F.shape[1]):  # a polish starts on all nodes
         return _priced(F, trace, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, mask, r,
                        cols, Elt, Vlt, Rls, qe, w_try, best_w)
     designed = trace and not use_start
@@ -162,9 +162,8 @@ def _priced(F, trace: bool, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, ma
     if not evaluate_at(F, w, At, Vt, R, Ri, trace)[1]:
         return np.inf, 0, 0
     gradient_at(F, Ri, P, Bm, g, trace)
-    order = np.argsort(g)
-    for t in range(add):
-        inS[order[t]] = True
+    if not _join(g, w, inS, -np.inf, add):  # the first set: the `add` most negative
+        return np.inf, 0, 0
     K = _gather(F, w, inS, FS, wS, idx)
     fill(wS[:K], 1.0 / K)
     if trace:
