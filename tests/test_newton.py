@@ -79,6 +79,11 @@ def test_nearest_point_matches_cvxpy():
         ws.mask[:] = lam > 0  # warm started on its own support: the same point
         newton.nearest(ws)
         assert np.allclose(ws.x, lam, atol=1e-12)
+        for _ in range(5):  # and from any other start (the SQP's first step guesses one):
+            ws.mask[:] = rng.random(N) < rng.uniform(0.1, 0.9)  # the same nearest point
+            newton.nearest(ws)                                   # (at n = 1 not the same x)
+            assert abs(ws.x.sum() - 1) < 1e-14 and ws.x.min() >= 0
+            assert np.allclose(ws.x @ D, lam @ D, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)

@@ -77,6 +77,7 @@ _RHO = 0.1
 _LOCAL = 1e-4
 _STALL = 5
 _DESIGN_STEPS = 2
+_LIKELY = 0.5
 _LAST = 1e-6  # from here a Newton step likely ends below TOL (quadratic convergence)
 _EPS = np.finfo(np.float64).eps
 
@@ -125,8 +126,9 @@ def solve_one(F, trace: bool, w0, use_start: bool, w, At, Vt, R, Ri, P, Bm, X, S
             _design_steps(F, w, _DESIGN_STEPS, At, Vt, R, Ri, P, Bm, g)
     # at least one SQP step after design steps: theirs never reach a zero weight, the
     # nearest point does (an optimum at a node is returned as that node exactly)
-    return _sqp(F, trace, w, TOL, 50 + 4 * N, 1 if designed else 0, At, Vt, R, Ri, P, Bm, X,
-                S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w)
+    return _sqp(F, trace, w, TOL, 50 + 4 * N, 1 if designed else 0, not use_start, At, Vt, R,
+                Ri, P, Bm, X, S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try,
+                best_w)
 
 
 @jit
@@ -168,12 +170,12 @@ def _priced(F, trace: bool, w, At, Vt, R, Ri, P, Bm, X, S, zeta, g, Et, x, z, ma
     fill(wS[:K], 1.0 / K)
     if trace:
         _design_steps(FS[:K], wS[:K], _DESIGN_STEPS, At, Vt, R, Ri, P, Bm, g[:K])
-    its, min_iter = 0, 1 if trace else 0
+    its, min_iter, fresh = 0, 1 if trace else 0, True
     while True:
-        rel, it, state = _sqp(FS[:K], trace, wS[:K], TOL, 50 + 4 * K, min_iter, At, Vt, R, Ri,
-                              P, Bm, X, S, zeta, g[:K], Et[:K], x[:K], z[:K], mask[:K], r,
-                              cols[:K], Elt, Vlt, Rls, qe, w_try[:K], best_w[:K])
-        its, min_iter = its + it, 0
+        rel, it, state = _sqp(FS[:K], trace, wS[:K], TOL, 50 + 4 * K, min_iter, fresh, At, Vt,
+                              R, Ri, P, Bm, X, S, zeta, g[:K], Et[:K], x[:K], z[:K], mask[:K],
+                              r, cols[:K], Elt, Vlt, Rls, qe, w_try[:K], best_w[:K])
+        its, min_iter, fresh = its + it, 0, False
         fill(w, 0.0)
         for t in range(K):
             w[idx[t]] = wS[t]
@@ -274,15 +276,15 @@ def sqp(F, trace: bool, w, ws, tol: float, max_iter: int):
     """One problem (module docstring): F (N, n, n), w (N,) a start on the simplex with Y(w)
     positive definite, overwritten with the iterate of the best certificate. Returns that
     certificate (relative) and the iteration count."""
-    rel, it, _ = _sqp(F, trace, w, tol, max_iter, 0, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
+    rel, it, _ = _sqp(F, trace, w, tol, max_iter, 0, False, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B,
                       ws.X, ws.S, ws.zeta, ws.g, ws.Et, ws.x, ws.z, ws.mask, ws.r, ws.cols,
                       ws.Elt, ws.Vlt, ws.Rls, ws.qe, ws.w_try, ws.best_w)
     return rel, it
 
 
 @jit
-def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, At, Vt, R, Ri, P, Bm,
-         X, S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
+def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, fresh: bool, At, Vt,
+         R, Ri, P, Bm, X, S, zeta, g, Et, x, z, mask, r, cols, Elt, Vlt, Rls, qe, w_try, best_w):
     """`sqp` with the buffers of `Work` as arrays (factored.py's docstring says why), taking
     at least min_iter steps; of iterates with equal certificates the later is kept. A
     point the last certificate says is likely final (below _LAST) is certified by its
@@ -314,8 +316,11 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, At, Vt, R,
             missed = True
             model_at(F, Ri, zeta, Et, g, Bm, X, S, trace, 1.0)
         it += 1
-        for i in range(N):
-            mask[i] = w[i] > 0.0
+        if it == 1 and fresh:
+            _likely_support(w, g, mask)
+        else:
+            for i in range(N):
+                mask[i] = w[i] > 0.0
         _nearest(Et, x, mask, z, r, cols, Elt, Vlt, Rls, qe)
         f = _step_towards(F, trace, w, x, g, w_try, At, Vt, R, Ri, f)
         shortened = not _equal(w, x)
@@ -325,6 +330,18 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, At, Vt, R,
         copy(w, best_w)
         return best, it, 0
     return best, it, GRADED if graded else FACTORED
+
+
+@jit
+def _likely_support(w, g, mask):
+    """The warm start of a fresh SQP's first nearest point: the nodes whose w_i (-g_i), the
+    next weight of the multiplicative algorithm of optimal design, is at least _LIKELY
+    times the largest (g < 0: every node's information lowers f)."""
+    top = 0.0
+    for i in range(w.size):
+        top = max(top, -w[i] * g[i])
+    for i in range(w.size):
+        mask[i] = -w[i] * g[i] >= _LIKELY * top
 
 
 @jit
