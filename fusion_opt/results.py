@@ -117,9 +117,9 @@ class FusionResult:
         read-only in place, and of a Status: what __init__ does without its copies and
         checks, which cost a third of a small fusion (each field named, not collected
         as **fields: 0.14 us less of 1.8)."""
-        weights.flags.writeable = False
-        mean.flags.writeable = False
-        cov.flags.writeable = False
+        weights.setflags(write=False)  # half the cost of .flags.writeable = False
+        mean.setflags(write=False)
+        cov.setflags(write=False)
         result = object.__new__(cls)
         result.__dict__.update(
             weights=weights, mean=mean, cov=cov, objective=objective, gap=gap, status=status,
