@@ -25,6 +25,7 @@ from .results import FusionInputError, FusionResult
 from .validation import real_array
 
 _PAIR = Names("m_a and m_b", "P_a and P_b", pair=True)
+_NAMES = Names()
 
 
 def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionResult:
@@ -73,7 +74,7 @@ def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_ar
     cross[i, j] = cov(e_i, e_j); polish=False returns a conic or SLSQP backend's weights
     unpolished. Anything else is refused by name.
     """
-    names = _PAIR if method == "ci" else Names()
+    names = _PAIR if method == "ci" else _NAMES
     req = core.request(method, criterion, backend, dict(method_args))
     return core.run(*core.arrays(means, covs, False, names), req, False, names)
 
