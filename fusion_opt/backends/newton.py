@@ -21,7 +21,9 @@ ill-conditioned problem it did so again at every step, each shortened to nothing
 The minimiser of q is the point of conv{d_i}, d_i = W z_i - (rho c + 1/rho)
 zeta, nearest the origin, found by non-negative least squares (Lawson & Hanson 1974,
 ch. 23: min |E u - e| over u >= 0 with E = [d_i; 1], e = (0, 1), lam = u / sum u, the d_i
-first scaled to unit size, which does not move lam), warm started on the support of w;
+first scaled to unit size, which does not move lam), warm started on the support of w
+(at the first step from the SQP's own start, where every weight is positive, on the
+nodes whose next design weight w_i (-g_i) is at least half the largest: `_likely_support`);
 its support has at most m + 1 nodes whatever N. w moves towards lam with Armijo
 backtracking on f (allowing the rounding of f); below a relative certificate of 1e-4,
 where the decrease of f can be below f's own rounding on an ill-conditioned problem, the
@@ -336,7 +338,12 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, fresh: boo
 def _likely_support(w, g, mask):
     """The warm start of a fresh SQP's first nearest point: the nodes whose w_i (-g_i), the
     next weight of the multiplicative algorithm of optimal design, is at least _LIKELY
-    times the largest (g < 0: every node's information lowers f)."""
+    times the largest (g < 0: every node's information lowers f). Started on all nodes
+    (every weight is positive there) its least squares was never positive, and the NNLS
+    built the support from none, a node at a time: 9.4 nodes entered at (n, N) = (6, 16),
+    3.8 from this start, whose least squares is positive on 96 % of problems ("trace";
+    8.4 and 5.8 for "logdet"). A wrong guess costs one factorisation: `_nearest` then
+    starts from none, as before."""
     top = 0.0
     for i in range(w.size):
         top = max(top, -w[i] * g[i])
