@@ -25,7 +25,6 @@ from .results import FusionInputError, FusionResult
 from .validation import real_array
 
 _PAIR = Names("m_a and m_b", "P_a and P_b", pair=True)
-_NAMES = Names()
 
 
 def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionResult:
@@ -74,7 +73,7 @@ def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_ar
     cross[i, j] = cov(e_i, e_j); polish=False returns a conic or SLSQP backend's weights
     unpolished. Anything else is refused by name.
     """
-    names = _PAIR if method == "ci" else _NAMES
+    names = _PAIR if method == "ci" else core._NAMES
     req = core.request(method, criterion, backend, dict(method_args))
     return core.run(*core.arrays(means, covs, False, names), req, False, names)
 
@@ -97,7 +96,7 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
         raise FusionInputError("weights must be finite, >= 0 and sum to 1")
     a = core._Arrays(1, N, covs.shape[2])
     core._prepare(means, covs, np.ones((1, N)), np.zeros((1, N), dtype=np.int64), a,
-                  Names(), False)
+                  core._NAMES, False)
     gap = newton.certificate(a.F[0], w, work(N, covs.shape[2]), req.trace)[0]
     return float(np.ldexp(gap, a.k[0]) if req.trace else gap)
 
