@@ -152,22 +152,29 @@ def arrays(means, covs, batch: bool, names: Names = _NAMES):
     gains a leading axis of 1); shapes checked by name."""
     means, covs = real_array(means, names.means), real_array(covs, names.covs)
     lead = 2 if batch else 1
-    want = "(B, N, n)" if batch else "(N, n)"
-    if means.ndim != lead + 1:
-        raise FusionInputError(f"{names.means} must have shape {want}, got {means.shape}")
-    if covs.ndim != lead + 2 or covs.shape[-1] != covs.shape[-2]:
-        raise FusionInputError(f"{names.covs} must have shape {want[:-1]}, n), got "
-                               f"{covs.shape}")
-    if covs.shape[:-1] != means.shape:
-        raise FusionInputError(f"{names.covs} shape {covs.shape} does not match "
-                               f"{names.means} shape {means.shape}")
-    if 0 in means.shape:
-        what = dict(zip("BNn", means.shape if batch else (1, *means.shape), strict=True))
-        zero = [k for k, v in what.items() if v == 0]
-        raise FusionInputError(f"{names.means} and {names.covs} are empty ({zero[0]} = 0)")
+    shape = means.shape
+    if means.ndim != lead + 1 or covs.shape != (*shape, shape[-1]) or 0 in shape:
+        raise _shape_error(means, covs, batch, names)
     if not batch:
         means, covs = means[None], covs[None]
     return _writable(means), _writable(covs)
+
+
+def _shape_error(means, covs, batch: bool, names: Names) -> FusionInputError:
+    """What is wrong with the shapes of means and covs, by name."""
+    lead = 2 if batch else 1
+    want = "(B, N, n)" if batch else "(N, n)"
+    if means.ndim != lead + 1:
+        return FusionInputError(f"{names.means} must have shape {want}, got {means.shape}")
+    if covs.ndim != lead + 2 or covs.shape[-1] != covs.shape[-2]:
+        return FusionInputError(f"{names.covs} must have shape {want[:-1]}, n), got "
+                                f"{covs.shape}")
+    if covs.shape[:-1] != means.shape:
+        return FusionInputError(f"{names.covs} shape {covs.shape} does not match "
+                                f"{names.means} shape {means.shape}")
+    what = dict(zip("BNn", means.shape if batch else (1, *means.shape), strict=True))
+    zero = [k for k, v in what.items() if v == 0]
+    return FusionInputError(f"{names.means} and {names.covs} are empty ({zero[0]} = 0)")
 
 
 def _writable(a: np.ndarray) -> np.ndarray:
@@ -248,12 +255,13 @@ class _Arrays:
         with new output arrays W, mean and cov, which the result keeps."""
         if B != 1:
             return _Arrays(B, N, n)
-        cache = _THREAD.__dict__.setdefault("arrays", {})
-        if (N, n) not in cache:
+        try:
+            a = _THREAD.arrays[N, n]
+        except (AttributeError, KeyError):
+            cache = _THREAD.__dict__.setdefault("arrays", {})
             if len(cache) > 64:
                 cache.clear()
-            cache[N, n] = _Arrays(1, N, n)
-        a = cache[N, n]
+            a = cache[N, n] = _Arrays(1, N, n)
         a.W, a.mean, a.cov = np.empty((1, N)), np.empty((1, n)), np.empty((1, n, n))
         return a
 
@@ -368,11 +376,14 @@ _OPTIMAL_OR_NOT = np.array([Status.OPTIMAL, Status.OPTIMAL_INACCURATE], dtype=ob
 
 
 def _ci_output(a, solve_time, polish_iters):
+    """The output tuple of `_result` from a's arrays; one problem's objective, gap, status
+    and iterations as 1-tuples of plain numbers (read once, without column views)."""
     if len(a.stats) == 1:
-        status = (Status.OPTIMAL if a.stats[0, 2] <= OPTIMAL_RTOL else
-                  Status.OPTIMAL_INACCURATE,)
-    else:
-        status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
+        obj, gap, rel = a.stats[0].tolist()
+        status = Status.OPTIMAL if rel <= OPTIMAL_RTOL else Status.OPTIMAL_INACCURATE
+        return (a.W, a.mean, a.cov, (obj,), (gap,), (status,), a.iters.tolist(), solve_time,
+                polish_iters, "ci_weights")
+    status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
     return (a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1], status, a.iters, solve_time,
             polish_iters, "ci_weights")
 
@@ -452,16 +463,15 @@ def _check_finite(req, out):
 
 
 def _result(req, out, batch):
+    """out: weights (B, N), mean (B, n), cov (B, n, n); objective, gap, status and
+    iterations, each B of them (a sequence); solve time, polish iterations, weights_are."""
     w, mean, cov, obj, gap, status, iters, solve_time, polish_iters, weights_are = out
-    backend = req.backend
     if batch:
-        return BatchFusionResult(w, mean, cov, obj, gap, status, iters, backend, solve_time,
-                                 req.method, req.criterion, weights_are)
+        return BatchFusionResult(w, mean, cov, obj, gap, status, iters, req.backend,
+                                 solve_time, req.method, req.criterion, weights_are)
     return FusionResult.owning(
-        weights=w[0], mean=mean[0], cov=cov[0], objective=float(obj[0]), gap=float(gap[0]),
-        status=status[0], backend=backend, solve_time=solve_time, iterations=int(iters[0]),
-        method=req.method, criterion=req.criterion, polish_iterations=polish_iters,
-        weights_are=weights_are)
+        w[0], mean[0], cov[0], float(obj[0]), float(gap[0]), status[0], req.backend,
+        solve_time, int(iters[0]), req.method, req.criterion, polish_iters, weights_are)
 
 
 def _memory(what, need, n, N, limit_name) -> str:
