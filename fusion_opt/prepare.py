@@ -104,7 +104,9 @@ def scaled(P, q, shift, S) -> float:
     factor = pow2(-shift)
     for j in range(n):
         for l in range(n):
-            x = 0.5 * (P[j, l] + P[l, j]) / q
+            x = 0.5 * (P[j, l] + P[l, j])
+            if q != 1.0:  # x / 1 is x: no division where there is no scale (BCI)
+                x /= q
             S[j, l] = x * factor if factor > 0.0 else np.ldexp(x, -shift)
             norm2 += S[j, l] * S[j, l]
     return norm2
