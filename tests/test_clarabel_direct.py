@@ -1,5 +1,5 @@
-"""The "clarabel-direct" backend against CVXPY's Clarabel, a brute-force grid for N = 2, and
-its mapping of Clarabel's statuses (the same as the CVXPY backend's)."""
+"""The "clarabel-direct" backend against CVXPY's Clarabel, the exact minimum for N = 2 (exact
+arithmetic), and its mapping of Clarabel's statuses (the same as the CVXPY backend's)."""
 
 from fractions import Fraction
 
