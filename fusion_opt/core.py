@@ -380,12 +380,12 @@ def _ci_output(a, solve_time, polish_iters):
     and iterations as 1-tuples of plain numbers (read once, without column views)."""
     if len(a.stats) == 1:
         obj, gap, rel = a.stats[0].tolist()
-        status = Status.OPTIMAL if rel <= OPTIMAL_RTOL else Status.OPTIMAL_INACCURATE
-        return (a.W, a.mean, a.cov, (obj,), (gap,), (status,), a.iters.tolist(), solve_time,
-                polish_iters, "ci_weights")
-    status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
-    return (a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1], status, a.iters, solve_time,
-            polish_iters, "ci_weights")
+        obj, gap, iters = (obj,), (gap,), a.iters.tolist()
+        status = (Status.OPTIMAL if rel <= OPTIMAL_RTOL else Status.OPTIMAL_INACCURATE,)
+    else:
+        obj, gap, iters = a.stats[:, 0], a.stats[:, 1], a.iters
+        status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
+    return a.W, a.mean, a.cov, obj, gap, status, iters, solve_time, polish_iters, "ci_weights"
 
 
 def _check_memory(req, n, N):

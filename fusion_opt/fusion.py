@@ -34,8 +34,7 @@ def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionR
     backend: a weight solver of fo.BACKENDS (default "newton"); polish=False returns an
     inexact backend's weights as they are (for comparing solvers).
     """
-    req = core.request("bci", criterion, backend, {"polish": polish})
-    return core.run(*core.arrays(means, covs, False), req, False)
+    return fuse(means, covs, "bci", criterion, backend, polish=polish)
 
 
 def ci(m_a, P_a, m_b, P_b, criterion="trace", backend=None, *, polish=True) -> FusionResult:
