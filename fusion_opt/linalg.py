@@ -23,16 +23,28 @@ first, after `drop_stale_caches` has compared one hash of the sources of every m
 the package that defines kernels (its files containing "@jit" or "@inline") with a stamp
 kept beside the caches, and dropped every cached kernel (*.nbi, *.nbc) of the package
 when they differ (1.3 ms added to an import of 0.5 s; see the function).
+
+Compile time. Almost all of a first fusion on a new machine is LLVM optimising the exact
+path (about 60 modules linked into `exact.fuse_exact`), and its level 3 passes cost more
+than they give here: `jit` compiles at level 2 (`_at_level_2`) unless the user set
+NUMBA_OPT. Measured on a 2-core AMD EPYC, empty cache: `fo.warmup` of both criteria
+57.0 -> 43.2 s, `python -m studies run paper --quick` 58.5 -> 48.2 s with bit-identical
+tables, and `fuse_exact` as fast (level 3 / level 2, median of 32 problems, run in turn
+twice; a third run was noisy for both, 235 / 214 us at (6, 64)): (6, 64) "trace" 206.1 / 206.7-207.3 us, (2, 3) 8.2 / 8.2-8.4, (4, 16)
+"logdet" 31.8-32.1 / 31.9-32.2; level 1 compiled in 39.1 s but ran 3-5 % slower).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import uuid
 
 import numpy as np
 from numba import njit
+from numba.core import config as _numba_config
+from numba.core.compiler_lock import global_compiler_lock
 
 SMALL = 16
 _JACOBI_SWEEPS = 60
@@ -133,12 +145,47 @@ def _refresh(cache: str, stamp: str) -> bool:
     return True
 
 
+def _at_level_2(decorator):
+    """`decorator` (an njit) whose kernels compile with LLVM's level 2 passes (module
+    docstring). numba reads the level, `numba.core.config.OPT`, each time it builds a
+    pass manager, so it is set for the duration of a kernel's compile only, under numba's
+    own (reentrant) compiler lock, which every compile holds: no other compile in the
+    process sees it. The kernels a compile calls compile inside it, at the same level.
+    A level the user chose (NUMBA_OPT set) is kept."""
+
+    def decorate(fn):
+        kernel = decorator(fn)
+        compile_ = kernel.compile
+
+        def compile(sig):
+            with global_compiler_lock, _llvm_level(2):
+                return compile_(sig)
+
+        kernel.compile = compile
+        return kernel
+
+    return decorate
+
+
+@contextlib.contextmanager
+def _llvm_level(level: int):
+    saved = _numba_config.OPT
+    if "NUMBA_OPT" in os.environ:
+        yield
+        return
+    _numba_config.OPT = type(saved)(level)
+    try:
+        yield
+    finally:
+        _numba_config.OPT = saved
+
+
 drop_stale_caches(os.path.dirname(os.path.abspath(__file__)))
-jit = njit(cache=True, error_model="numpy")
+jit = _at_level_2(njit(cache=True, error_model="numpy"))
 # For a one-problem step of a batch loop that takes its ~30 work arrays one by one: a
 # compiled call passes each as a struct, and inlined into the loop (numba IR) the calls of
 # `newton.solve_one` and `assemble.assemble_one` cost 0.5 us a problem less at (4, 3).
-inline = njit(cache=True, error_model="numpy", inline="always")
+inline = _at_level_2(njit(cache=True, error_model="numpy", inline="always"))
 
 
 @jit

@@ -172,3 +172,36 @@ def test_the_exact_path_links_the_parts_compiled_by_other_processes(tmp_path):
     hits_sqp, misses_sqp, hits_assemble, misses_assemble = map(int, out)
     assert hits_sqp >= 1 and hits_assemble >= 1
     assert misses_sqp == 0 and misses_assemble == 0
+
+
+class _Dispatcher:
+    """Stands for a numba dispatcher: records the LLVM level each compile ran at."""
+
+    def __init__(self, fn, fail=False):
+        self.levels, self.fail = [], fail
+
+    def compile(self, sig):
+        self.levels.append(int(numba.core.config.OPT))
+        if self.fail:
+            raise RuntimeError("typing failed")
+        return sig
+
+
+def test_kernels_compile_at_level_2_and_the_level_comes_back(monkeypatch):
+    monkeypatch.delenv("NUMBA_OPT", raising=False)
+    monkeypatch.setattr(numba.core.config, "OPT", type(numba.core.config.OPT)(3))
+    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    assert kernel.compile("sig") == "sig"
+    failing = linalg._at_level_2(lambda fn: _Dispatcher(fn, fail=True))(lambda: None)
+    with pytest.raises(RuntimeError, match="typing failed"):
+        failing.compile("sig")
+    assert kernel.levels == [2] and failing.levels == [2]
+    assert int(numba.core.config.OPT) == 3
+
+
+def test_a_level_the_user_set_in_numba_opt_is_kept(monkeypatch):
+    monkeypatch.setenv("NUMBA_OPT", "1")
+    monkeypatch.setattr(numba.core.config, "OPT", type(numba.core.config.OPT)(1))
+    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    kernel.compile("sig")
+    assert kernel.levels == [1] and int(numba.core.config.OPT) == 1
