@@ -40,7 +40,9 @@ def _fake_cache(root):
     return files, pyc
 
 
-def test_a_changed_kernel_source_drops_every_cache_and_an_unchanged_tree_keeps_it(tmp_path):
+def test_a_changed_kernel_source_drops_every_cache_and_an_unchanged_tree_keeps_it(
+        tmp_path, monkeypatch):
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")  # in-tree caches, NUMBA_CACHE_DIR set or not
     root = _tree(tmp_path)
     caches = {str(root / "__pycache__"), str(root / "sub" / "__pycache__")}
     files, pyc = _fake_cache(root)
