@@ -24,14 +24,16 @@ the package that defines kernels (its files containing "@jit" or "@inline") with
 kept beside the caches, and dropped every cached kernel (*.nbi, *.nbc) of the package
 when they differ (1.3 ms added to an import of 0.5 s; see the function).
 
-Compile time. Almost all of a first fusion on a new machine is LLVM optimising the exact
-path (about 60 modules linked into `exact.fuse_exact`), and its level 3 passes cost more
-than they give here: `jit` compiles at level 2 (`_at_level_2`) unless the user set
-NUMBA_OPT. Measured on a 2-core AMD EPYC, empty cache: `fo.warmup` of both criteria
-57.0 -> 43.2 s, `python -m studies run paper --quick` 58.5 -> 48.2 s with bit-identical
-tables, and `fuse_exact` as fast (level 3 / level 2, median of 32 problems, run in turn
-twice; a third run was noisy for both, 235 / 214 us at (6, 64)): (6, 64) "trace" 206.1 / 206.7-207.3 us, (2, 3) 8.2 / 8.2-8.4, (4, 16)
-"logdet" 31.8-32.1 / 31.9-32.2; level 1 compiled in 39.1 s but ran 3-5 % slower).
+Compile time. At least half of a first fusion on a new machine is LLVM optimising and
+emitting the exact path (numba finalizes each kernel's module with every kernel it calls
+linked in; under cProfile 35 of 71 s, the profiler inflating the rest, numba's own typing
+and lowering), and its level 3 passes cost more than they give here: `jit` compiles at
+level 2 (`_at_level_2`) unless the user set NUMBA_OPT. Measured on a 2-core AMD EPYC,
+empty cache: `fo.warmup` of both criteria 57.0 -> 43.2 s, `python -m studies run paper
+--quick` 58.5 -> 48.2 s with bit-identical tables, and `fuse_exact` as fast (level 3 /
+level 2, median of 32 problems, run in turn twice; a third run was noisy for both, 235 /
+214 us at (6, 64)): (6, 64) "trace" 206.1 / 206.7-207.3 us, (2, 3) 8.2 / 8.2-8.4, (4, 16)
+"logdet" 31.8-32.1 / 31.9-32.2; level 1 compiled in 39.1 s but ran 3-5 % slower.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import uuid
 import numpy as np
 from numba import njit
 from numba.core import config as _numba_config
+from numba.core import types as _numba_types
 from numba.core.compiler_lock import global_compiler_lock
 
 SMALL = 16
@@ -151,13 +154,20 @@ def _at_level_2(decorator):
     pass manager, so it is set for the duration of a kernel's compile only, under numba's
     own (reentrant) compiler lock, which every compile holds: no other compile in the
     process sees it. The kernels a compile calls compile inside it, at the same level.
-    A level the user chose (NUMBA_OPT set) is kept."""
+    A level the user chose (NUMBA_OPT set) is kept. A kernel is compiled for the plain
+    types of its arguments: numba would compile another copy of it (and of the kernels it
+    calls) for each constant a caller passes (`evaluate_at(..., True)`, `householder(...,
+    0)`), which LLVM's inlining specialises anyway (186 -> 155 compiled signatures on the
+    exact path, `fo.warmup` of both criteria 45.0 -> 42.9 s, the mean of three runs each,
+    run times equal)."""
 
     def decorate(fn):
         kernel = decorator(fn)
         compile_ = kernel.compile
 
         def compile(sig):
+            if isinstance(sig, tuple):  # argument types of a call from a kernel
+                sig = tuple(_numba_types.unliteral(t) for t in sig)
             with global_compiler_lock, _llvm_level(2):
                 return compile_(sig)
 

@@ -9,6 +9,7 @@ import textwrap
 
 import numba
 import pytest
+from numba.core import types
 
 from fusion_opt import linalg
 
@@ -180,10 +181,11 @@ class _Dispatcher:
     """Stands for a numba dispatcher: records the LLVM level each compile ran at."""
 
     def __init__(self, fn, fail=False):
-        self.levels, self.fail = [], fail
+        self.levels, self.sigs, self.fail = [], [], fail
 
     def compile(self, sig):
         self.levels.append(int(numba.core.config.OPT))
+        self.sigs.append(sig)
         if self.fail:
             raise RuntimeError("typing failed")
         return sig
@@ -207,3 +209,13 @@ def test_a_level_the_user_set_in_numba_opt_is_kept(monkeypatch):
     kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
     kernel.compile("sig")
     assert kernel.levels == [1] and int(numba.core.config.OPT) == 1
+
+
+def test_a_kernel_is_compiled_for_the_plain_types_of_constant_arguments():
+    """A call from a kernel with a constant argument (types Literal[bool](True),
+    Literal[int](0)) compiles the kernel for bool and int64, the types of the same call
+    with variables, not a copy per constant."""
+    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    kernel.compile((types.literal(True), types.literal(0), types.float64))
+    kernel.compile((types.boolean, types.int64, types.float64))
+    assert kernel.sigs == [(types.boolean, types.int64, types.float64)] * 2
