@@ -1,8 +1,12 @@
 """Table 2 through the command line on a tiny scenario: its outputs, `report` from the
 store, and every scenario field reaching the filters (resample_threshold did not)."""
 
+from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+
+from studies import table2
 from studies.__main__ import main
 
 TINY = """
@@ -41,3 +45,25 @@ def test_resample_threshold_reaches_the_filters(tmp_path):
     never = _run(tmp_path, "never", "resample_threshold = 0.0\n")
     always = _run(tmp_path, "always", "resample_threshold = 1.0\n")
     assert never != always
+
+
+def test_spectral_norms_are_the_largest_eigenvalues_grouped_by_target():
+    """The batched norms against eigvalsh, matrix by matrix (covariances are symmetric
+    positive definite: the spectral norm is the largest eigenvalue), appended per target in
+    the order matched; no match appends nothing."""
+    rng = np.random.default_rng(7)
+    A = rng.standard_normal((5, 4, 4))
+    covs = list(A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(4))
+    targets = [3, 1, 3, 0, 1]
+    per_target = {k: defaultdict(list) for k in ("mncm", "mncm_pos")}
+    table2._spectral_norms(per_target, targets, covs)
+    for key, block in (("mncm", slice(0, 4)), ("mncm_pos", slice(0, 2))):
+        want = defaultdict(list)
+        for t, P in zip(targets, covs, strict=True):
+            want[t].append(np.linalg.eigvalsh(P[block, block])[-1])
+        assert list(per_target[key]) == [3, 1, 0]
+        for t in want:
+            np.testing.assert_allclose(per_target[key][t], want[t], rtol=1e-13)
+    empty = {k: defaultdict(list) for k in ("mncm", "mncm_pos")}
+    table2._spectral_norms(empty, [], [])
+    assert not empty["mncm"] and not empty["mncm_pos"]
