@@ -179,10 +179,10 @@ def _at_level_2(decorator):
 
 @contextlib.contextmanager
 def _llvm_level(level: int):
-    saved = _numba_config.OPT
     if "NUMBA_OPT" in os.environ:
         yield
         return
+    saved = _numba_config.OPT
     _numba_config.OPT = type(saved)(level)
     try:
         yield

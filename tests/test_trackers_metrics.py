@@ -95,6 +95,7 @@ def test_mse_rmse_mncm_hand_computed():
     covs[1, :2, :2] = [[2.0, 1.0], [1.0, 2.0]]  # eigenvalues 1 and 3
     assert metrics.mncm(covs) == pytest.approx((7 + 3) / 2)
     assert metrics.mncm(covs, components=(0, 1)) == pytest.approx((3 + 3) / 2)
+    np.testing.assert_allclose(metrics.spectral_norms(covs, components=(0, 1)), [3, 3])
     with pytest.raises(ValueError, match="same shape"):
         metrics.mse(est, truth[:1])
     with pytest.raises(ValueError, match="components must be"):

@@ -80,11 +80,15 @@ def _cov_block(covs, components):
     return P
 
 
+def spectral_norms(covs, components=None) -> np.ndarray:
+    """(T,) spectral norms ||P_k||_2 of covariances (T, n, n), in one batched call;
+    ``components`` takes the block of those state indices (e.g. models.POSITION)."""
+    return np.linalg.norm(_cov_block(covs, components), ord=2, axis=(1, 2))
+
+
 def mncm(covs, components=None) -> float:
-    """Mean over time of the spectral norm ||P_k||_2 of covariances (T, n, n); ``components``
-    takes the block of those state indices (e.g. models.POSITION)."""
-    P = _cov_block(covs, components)
-    return float(np.mean(np.linalg.norm(P, ord=2, axis=(1, 2))))
+    """Mean over time of `spectral_norms`."""
+    return float(np.mean(spectral_norms(covs, components)))
 
 
 def nees(estimates, truth, covs, components=None) -> np.ndarray:
