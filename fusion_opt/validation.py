@@ -103,7 +103,7 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
             f"{name} of {_where(idx, item, labels)} is not symmetric: max |P - P^T| = "
             f"{asym[idx]:.3g} exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
     sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
-    ok = _cholesky_ok(sym)
+    ok = cholesky_ok(sym)
     if not ok.all():
         idx = tuple(int(i) for i in np.argwhere(~ok)[0])
         eig = np.linalg.eigvalsh(sym[idx]).min()
@@ -112,7 +112,7 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
     return sym
 
 
-def _cholesky_ok(covs: np.ndarray) -> np.ndarray:
+def cholesky_ok(covs: np.ndarray) -> np.ndarray:
     """Boolean mask over the leading axes: True where the Cholesky factorisation succeeds."""
     flat = covs.reshape(-1, *covs.shape[-2:])
     try:

@@ -249,3 +249,18 @@ def test_cross_covariance_rejects_bad_input():
         kalman.cross_covariance_step(C * np.nan, np.array([True, False]), model)
     with pytest.raises(FusionInputError, match="model must be"):
         kalman.cross_covariance_step(C, np.array([True, False]), "model")
+
+
+def test_a_step_that_overflows_is_refused_and_the_state_kept():
+    """Regression: A = 1e200 I overflows the prediction; `run` returned inf and then NaN
+    covariances, and `step` kept the inf state before the Estimates refused it."""
+    I = np.eye(2)
+    model = models.LinearGaussian(1e200 * I, I, I, I)
+    with pytest.raises(FusionInputError, match=r"scans\[0\]: step 1's estimate is not finite"):
+        kalman.run([[]] * 3, model, np.zeros(2), I)
+    kf = kalman.KalmanFilter(model, np.zeros(2), I)
+    with pytest.raises(FusionInputError, match="scan: step 1's estimate"):
+        kf.step([])
+    assert kf.steps == 0
+    np.testing.assert_array_equal(kf.cov, I)
+    np.testing.assert_array_equal(kf.mean, np.zeros(2))

@@ -151,7 +151,48 @@ def test_matching_is_the_optimal_assignment_not_greedy():
 def test_id_switches_count_changes_of_the_matched_id():
     """Target 0 keeps id 7 through a gap, target 1 goes 3 -> 4 -> 3, target 2 never matched."""
     np.testing.assert_array_equal(metrics.id_switches([[7, 7, 7], [3, 4, 3], []]), [0, 2, 0])
+    # ids are compared as integers: as floats, 2^53 and 2^53 + 1 would be one id
+    np.testing.assert_array_equal(metrics.id_switches([[2**53, 2**53 + 1], [2.0, 2.0]]),
+                                  [1, 0])
     for bad, match in ((5, "ids must be a sequence"), ([[1, "a"]], r"ids\[0\]"),
-                       ([[[1, 2]]], r"ids\[0\] must have 1 dimension")):
+                       ([[[1, 2]]], r"ids\[0\] must be a 1-D sequence of integer"),
+                       ([[1, 1.5]], r"ids\[0\] must be a 1-D sequence of integer")):
         with pytest.raises(FusionInputError, match=match):
             metrics.id_switches(bad)
+
+
+def test_metrics_at_the_ends_of_float64_by_hand():
+    """Regression: these overflowed or underflowed to inf, 0 or a raw scipy error. Hand
+    values: errors of 1e200 in 4 components, RMSE 2e200; covariances 1e308 I, MNCM 1e308;
+    OSPA of {0} against {(1, 1), (1, 1)} is sqrt((2 + c^2) / 2) for c > sqrt 2, c if every
+    distance is cut off."""
+    big, tiny = np.full((3, 4), 1e200), np.full((3, 4), 1e-200)
+    assert metrics.rmse(big, np.zeros((3, 4))) == pytest.approx(2e200, rel=1e-15)
+    assert metrics.rmse(tiny, np.zeros((3, 4))) == pytest.approx(2e-200, rel=1e-15)
+    assert metrics.mncm(np.stack([1e308 * np.eye(2)] * 3)) == 1e308
+    X, Y = np.zeros((1, 2)), np.ones((2, 2))
+    assert metrics.ospa(X, Y, 1e200, 2) == pytest.approx(1e200 / np.sqrt(2), rel=1e-15)
+    assert metrics.ospa(X, Y, 3.0, 2) == pytest.approx(np.sqrt(11 / 2), rel=1e-15)
+    assert metrics.ospa(X, Y, 1e-200, 2) == pytest.approx(1e-200, rel=1e-15)
+    assert metrics.ospa(X, Y, 10.0, 1e300) == pytest.approx(10.0, rel=1e-15)
+    assert metrics.gospa(X, Y, 1e200, 2) == pytest.approx(1e200 / np.sqrt(2), rel=1e-15)
+    far = np.array([[1.7e308, 1.7e308]]), np.array([[-1.7e308, 0.0]])
+    assert metrics.ospa(*far, 5.0, 1) == 5.0 and metrics.match(*far, 5.0)[0].size == 0
+    lo, hi = metrics.anees_bounds(10**12, 10**12)
+    assert 1e12 - 3 < lo < 1e12 < hi < 1e12 + 3
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: metrics.mse(np.zeros((0, 4)), np.zeros((0, 4))), "at least one step"),
+    (lambda: metrics.mncm(np.zeros((0, 4, 4))), r"T >= 1"),
+    (lambda: metrics.mncm(-np.eye(2)[None]), r"covs\[0\] is not positive semidefinite"),
+    (lambda: metrics.nees(np.ones((3, 4)), np.zeros((3, 4)), np.zeros((3, 4, 4))),
+     r"covs\[0\] is not positive definite"),
+    (lambda: metrics.nees(np.ones((1, 2)), np.zeros((1, 2)), 1e-320 * np.eye(2)[None]),
+     "NEES of step 0 overflows"),
+    (lambda: metrics.mse(np.full((3, 4), 1e200), np.zeros((3, 4))), "MSE overflows"),
+    (lambda: metrics.anees_bounds(10**300, 10**300), "below 1e300")])
+def test_metrics_refuse_what_float64_cannot_give(call, match):
+    """Regression: each returned NaN, inf, a negative NEES or a LinAlgError."""
+    with pytest.raises(FusionInputError, match=match):
+        call()

@@ -188,3 +188,21 @@ def test_rbpf_refuses_non_numbers(name, bad):
     pf = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0))
     with pytest.raises(FusionInputError, match="scan must be"):
         pf.step(None)
+
+
+def test_a_step_float64_cannot_hold_is_refused_and_the_filter_goes_on():
+    """Regression: a measurement 1e100 away without clutter moves every particle there,
+    where their spread is the rounding of their means (1e84): the mixture covariance has
+    eigenvalues of -4e152, and the step kept that state, so every later step failed too.
+    Now the step is refused, the particles stay, and the next step is the step a filter
+    that never saw it takes (clutter_prior = 0: every particle takes the update)."""
+    _, model, m0, P0 = table1()
+    pf = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), clutter_prior=0.0)
+    with pytest.raises(FusionInputError, match="scan: step 1's estimate is not finite"):
+        pf.step([[1e100, 1e100]])
+    assert pf.steps == 0 and np.all(pf.means == m0)
+    fresh = rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), clutter_prior=0.0)
+    np.testing.assert_array_equal(pf.step([[0.0, 0.0]]).covs, fresh.step([[0.0, 0.0]]).covs)
+    with pytest.raises(FusionInputError, match=r"scans\[1\]: step 2's estimate"):
+        rbpf.run([[[0.0, 0.0]], [[1e100, 1e100]]], model, m0, P0,
+                 rng=np.random.default_rng(0), clutter_prior=0.0)

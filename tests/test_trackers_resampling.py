@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from fusion_opt import FusionInputError
 from trackers import resampling
 
 
@@ -71,3 +72,27 @@ def test_end_of_step_resamples_only_below_the_threshold():
     assert counts.sum() == 4 and counts[0] in (2, 3)
     ref = resampling.systematic_resample(logw, np.random.default_rng(4))
     np.testing.assert_array_equal(done.ancestors, ref)
+
+
+@pytest.mark.parametrize("logw, match", [
+    (np.array([-np.inf, -np.inf]), "not all weights 0"), (np.array([np.nan, 0.0]), "max nan"),
+    (np.array([np.inf, 0.0]), "max inf"), (np.zeros(0), "non-empty"),
+    (np.zeros((2, 2)), "non-empty"), ([True, False], "real numbers")])
+def test_log_weights_that_are_no_distribution_are_refused(logw, match):
+    """Regression: all-zero weights gave NaN weights and ESS, a NaN weight was silently
+    never drawn, a list raised AttributeError."""
+    for call in (resampling.normalize_log_weights, resampling.effective_sample_size,
+                 lambda lw: resampling.systematic_resample(lw, np.random.default_rng(0)),
+                 lambda lw: resampling.end_of_step(lw, 1.0, np.random.default_rng(0))):
+        with pytest.raises(FusionInputError, match=match):
+            call(logw)
+    np.testing.assert_allclose(resampling.normalize_log_weights([-np.inf, 0.0]), [-np.inf, 0])
+
+
+def test_resampling_refuses_a_bad_generator_and_threshold():
+    with pytest.raises(FusionInputError, match="rng must be a numpy.random.Generator"):
+        resampling.systematic_resample(np.zeros(2), 0)
+    with pytest.raises(FusionInputError, match="rng must be a numpy.random.Generator"):
+        resampling.end_of_step(np.array([0.0, -30.0]), 2.0, 0)
+    with pytest.raises(FusionInputError, match="threshold must be a particle count"):
+        resampling.end_of_step(np.zeros(3), np.nan, np.random.default_rng(0))

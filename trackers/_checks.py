@@ -119,6 +119,22 @@ def read_only(a: np.ndarray) -> np.ndarray:
     return v
 
 
+def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -> None:
+    """Refuses a filter's step whose estimates, means (..., n) and covs (..., n, n), are not
+    finite with positive-definite (Cholesky) covariances, before the filter keeps its new
+    state, which is then the one before the step. float64 cannot represent such a step: a
+    measurement ``name`` far beyond the model's scale (a mixture's spread falls below the
+    rounding of its means), or a model and prior at float64's limits."""
+    with np.errstate(invalid="ignore"):
+        if np.isfinite(means).all() and np.isfinite(covs).all() \
+                and _fo.cholesky_ok(covs).all():
+            return
+    raise FusionInputError(
+        f"{name}: step {steps + 1}'s estimate is not finite, or its covariance not positive "
+        "definite, in float64 (a measurement far beyond the model's scale, or a model and "
+        "prior at float64's limits); the filter's state is the one before this step")
+
+
 def generator(name: str, value) -> np.random.Generator:
     if not isinstance(value, np.random.Generator):
         raise FusionInputError(

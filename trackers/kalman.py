@@ -197,9 +197,12 @@ class KalmanFilter:
         """Number of steps taken."""
         return self._steps
 
-    def _advance(self, scan: np.ndarray) -> None:
-        """One step on a checked scan (k, d)."""
-        self._m, self._P = filter_step(self._m, self._P, scan, self.model)
+    def _advance(self, scan: np.ndarray, name: str = "scan") -> None:
+        """One step on a checked scan (k, d); the state changes only if it succeeds."""
+        with np.errstate(over="ignore", invalid="ignore"):  # refused just below
+            m, P = filter_step(self._m, self._P, scan, self.model)
+        _checks.step_estimates(name, self._steps, m, P)
+        self._m, self._P = m, P
         self._steps += 1
 
     def step(self, scan, time=None) -> Estimates:
@@ -222,6 +225,6 @@ def run(scans: Sequence, model: LinearGaussian, m0, P0) -> FilterOutput:
     means = np.empty((len(scans), model.n))
     covs = np.empty((len(scans), model.n, model.n))
     for t, scan in enumerate(scans):  # step() less the Estimates it wraps the moments in
-        kf._advance(scan)
+        kf._advance(scan, f"scans[{t}]")
         means[t], covs[t] = kf.mean, kf.cov
     return FilterOutput(means, covs)

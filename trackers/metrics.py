@@ -31,6 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
 from fusion_opt import FusionInputError
+from fusion_opt.validation import cholesky_ok
 from trackers import _checks
 
 
@@ -54,29 +55,60 @@ def _pair(estimates, truth):
     x = _checks.finite_array("truth", truth, ndim=2)
     if m.shape != x.shape:
         raise FusionInputError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
+    if m.shape[0] == 0:
+        raise FusionInputError("estimates and truth must hold at least one step, got none")
     return m, x
+
+
+def _errors(estimates, truth, components) -> np.ndarray:
+    """The errors (T, k) of the components, refused if a difference overflows."""
+    m, x = _pair(estimates, truth)
+    with np.errstate(over="ignore"):
+        e = _components(m - x, components)
+    if not np.isfinite(e).all():
+        raise FusionInputError("estimates - truth overflows float64")
+    return e
 
 
 def mse(estimates, truth, components=None) -> float:
     """Mean over time of the squared error norm. estimates, truth (T, n); ``components``
-    selects state indices (e.g. models.POSITION), default the full state."""
-    m, x = _pair(estimates, truth)
-    e = _components(m - x, components)
-    return float(np.mean(np.sum(e * e, axis=-1)))
+    selects state indices (e.g. models.POSITION), default the full state. Refused if it
+    overflows float64 (`rmse` does not)."""
+    e = _errors(estimates, truth, components)
+    with np.errstate(over="ignore"):
+        value = float(np.mean(np.sum(e * e, axis=-1)))
+    if not np.isfinite(value):
+        raise FusionInputError(f"the MSE overflows float64 (errors up to {np.abs(e).max():.3g})")
+    return value
 
 
 def rmse(estimates, truth, components=None) -> float:
-    """sqrt(mse): root mean (over time) squared error norm."""
-    return float(np.sqrt(mse(estimates, truth, components)))
+    """sqrt(mse): root mean (over time) squared error norm, computed on errors scaled by
+    their largest (exactly, by a power of two) when their squares would leave float64."""
+    e = _errors(estimates, truth, components)
+    top = np.abs(e).max()
+    if 1e-150 < top < 1e150 or top == 0.0:
+        return float(np.sqrt(np.mean(np.sum(e * e, axis=-1))))
+    scale = 2.0 ** np.frexp(top)[1]
+    e = e / scale
+    return float(np.sqrt(np.mean(np.sum(e * e, axis=-1))) * scale)
 
 
 def _cov_block(covs, components):
+    """The (T, k, k) blocks of symmetric positive semidefinite covariances (T, n, n), T >= 1."""
     P = _checks.finite_array("covs", covs, ndim=3)
-    if P.shape[1] != P.shape[2]:
-        raise FusionInputError(f"covs must be (T, n, n), got {P.shape}")
+    if P.shape[1] != P.shape[2] or P.shape[0] == 0:
+        raise FusionInputError(f"covs must be (T, n, n) with T >= 1, got {P.shape}")
     if components is not None:
         idx = _indices(components, P.shape[1])
         P = P[:, idx[:, None], idx[None, :]]
+    top = np.abs(P).max(axis=(1, 2))
+    asym = np.abs(P - P.swapaxes(1, 2)).max(axis=(1, 2)) > 1e-8 * top
+    low = np.linalg.eigvalsh(0.5 * P + 0.5 * P.swapaxes(1, 2))[:, 0] < -1e-10 * top
+    if asym.any() or low.any():
+        k = int(np.flatnonzero(asym | low)[0])
+        what = "symmetric" if asym[k] else "positive semidefinite"
+        raise FusionInputError(f"covs[{k}] is not {what}")
     return P
 
 
@@ -88,7 +120,18 @@ def spectral_norms(covs, components=None) -> np.ndarray:
 
 def mncm(covs, components=None) -> float:
     """Mean over time of `spectral_norms`."""
-    return float(np.mean(spectral_norms(covs, components)))
+    return _mean(spectral_norms(covs, components))
+
+
+def _mean(values: np.ndarray) -> float:
+    """The mean of finite values (T,) >= 0, taken over values scaled by their largest when
+    their sum would overflow."""
+    with np.errstate(over="ignore"):
+        value = float(np.mean(values))
+    if np.isfinite(value):
+        return value
+    top = values.max()
+    return float(np.mean(values / top) * top)
 
 
 def nees(estimates, truth, covs, components=None) -> np.ndarray:
@@ -101,12 +144,21 @@ def nees(estimates, truth, covs, components=None) -> np.ndarray:
     if e.shape[1] != P.shape[1]:
         raise FusionInputError(f"covs blocks are {P.shape[1:]}, errors have {e.shape[1]} "
                                "components")
-    return np.einsum("ti,ti->t", e, np.linalg.solve(P, e[..., None])[..., 0])
+    singular = ~cholesky_ok(P)
+    if singular.any():
+        raise FusionInputError(f"covs[{int(np.flatnonzero(singular)[0])}] is not positive "
+                               "definite: its NEES is undefined")
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = np.einsum("ti,ti->t", e, np.linalg.solve(P, e[..., None])[..., 0])
+    if not np.isfinite(out).all():
+        raise FusionInputError(f"the NEES of step {int(np.flatnonzero(~np.isfinite(out))[0])} "
+                               "overflows float64 (an error far beyond its covariance)")
+    return out
 
 
 def anees(estimates, truth, covs, components=None) -> float:
     """Mean NEES over the steps."""
-    return float(np.mean(nees(estimates, truth, covs, components)))
+    return _mean(nees(estimates, truth, covs, components))
 
 
 def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, float]:
@@ -115,8 +167,11 @@ def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, floa
     dim = _checks.positive_int("dim", dim)
     count = _checks.positive_int("count", count)
     level = _checks.probability("level", level)
+    if count * dim >= 10**300:
+        raise FusionInputError("count x dim must be below 1e300")
+    df = float(count * dim)  # a Python int above 2^63 would reach scipy as an object
     a = (1.0 - level) / 2.0
-    lo, hi = chi2.ppf([a, 1.0 - a], count * dim) / count
+    lo, hi = chi2.ppf([a, 1.0 - a], df) / count
     return float(lo), float(hi)
 
 
@@ -137,13 +192,19 @@ def _point_sets(X, Y):
 
 
 def _assignment_cost(X, Y, c, p) -> float:
-    """min over assignments of sum d_c(x, y)^p for the min(m, k) assigned pairs."""
+    """min over assignments of sum (d_c(x, y) / c)^p for the min(m, k) assigned pairs: in
+    units of c, so that no c and p reach beyond float64 (each term is in [0, 1])."""
     if X.shape[0] == 0 or Y.shape[0] == 0:
         return 0.0
-    D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
-    C = np.minimum(D, c) ** p
+    C = np.minimum(_distances(X, Y) / c, 1.0) ** p
     r, s = linear_sum_assignment(C)
     return float(C[r, s].sum())
+
+
+def _distances(X, Y) -> np.ndarray:
+    """(m, k) Euclidean distances, inf where one overflows (beyond any cut-off)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
 
 
 def ospa(X, Y, c: float, p: float) -> float:
@@ -159,8 +220,8 @@ def ospa(X, Y, c: float, p: float) -> float:
     m, k = sorted((X.shape[0], Y.shape[0]))
     if k == 0:
         return 0.0
-    total = _assignment_cost(X, Y, c, p) + c**p * (k - m)
-    return float((total / k) ** (1.0 / p))
+    total = _assignment_cost(X, Y, c, p) + (k - m)
+    return float(c * (total / k) ** (1.0 / p))
 
 
 def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
@@ -175,8 +236,8 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
     if alpha > 2:
         raise FusionInputError(f"alpha must be in (0, 2], got {alpha}")
     m, k = sorted((X.shape[0], Y.shape[0]))
-    total = _assignment_cost(X, Y, c, p) + c**p / alpha * (k - m)
-    return float(total ** (1.0 / p))
+    total = _assignment_cost(X, Y, c, p) + (k - m) / alpha
+    return float(c * total ** (1.0 / p))
 
 
 def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -187,7 +248,7 @@ def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
     c = _checks.positive("c", c)
     if X.shape[0] == 0 or Y.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
+    D = _distances(X, Y)
     r, s = linear_sum_assignment(np.minimum(D, c))
     keep = D[r, s] < c
     return r[keep], s[keep]
@@ -201,8 +262,21 @@ def id_switches(ids) -> np.ndarray:
     if isinstance(ids, str | bytes) or not hasattr(ids, "__iter__"):
         raise FusionInputError(f"ids must be a sequence of id sequences, one per target, got "
                                f"{type(ids).__name__}")
-    seqs = [_checks.finite_array(f"ids[{j}]", s, ndim=1) for j, s in enumerate(ids)]
+    seqs = [_id_sequence(f"ids[{j}]", s) for j, s in enumerate(ids)]
     return np.array([np.count_nonzero(np.diff(s)) for s in seqs], dtype=np.int64)
+
+
+def _id_sequence(name: str, value) -> np.ndarray:
+    """Track ids (L,) as int64, exactly (as floats, ids above 2^53 would merge)."""
+    a = np.asarray(value) if not isinstance(value, str | bytes) else np.asarray(None)
+    if a.dtype.kind == "f" and np.isfinite(a).all() and (a == np.round(a)).all() \
+            and np.abs(a).max(initial=0.0) < 2.0**53:
+        a = a.astype(np.int64)
+    if a.dtype.kind not in "iu" or a.ndim != 1 \
+            or (a.dtype.kind == "u" and a.max(initial=0) >= 2**63):
+        raise FusionInputError(f"{name} must be a 1-D sequence of integer track ids, got "
+                               f"{value!r}")
+    return a.astype(np.int64)
 
 
 def cardinality_error(n_estimated, n_true) -> np.ndarray:

@@ -406,10 +406,13 @@ class RBMCDA:
         """Whether the last step resampled."""
         return self._last.resampled
 
-    def _advance(self, scan: np.ndarray) -> RBMCDAReport:
+    def _advance(self, scan: np.ndarray, name: str = "scan") -> RBMCDAReport:
         """One step on a checked scan (k, d); the state changes only if it succeeds."""
-        self._state, self._last = filter_step(self._state, scan, self.params, self._rng)
-        return self._last
+        with np.errstate(over="ignore", invalid="ignore"):  # refused just below
+            state, last = filter_step(self._state, scan, self.params, self._rng)
+        _checks.step_estimates(name, self._state.k, last.means, last.covs)
+        self._state, self._last = state, last
+        return last
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, draw deaths, associate every measurement of ``scan`` (k, d), report the
@@ -440,7 +443,7 @@ def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Genera
     tracks, ess = [], np.empty(T)
     expected_n, resampled = np.empty(T), np.zeros(T, dtype=bool)
     for k, scan in enumerate(scans):
-        r = f._advance(scan)
+        r = f._advance(scan, f"scans[{k}]")
         tracks.append(tuple(Track(int(u), m, P) for u, m, P in zip(r.ids, r.means, r.covs,
                                                                    strict=True)))
         ess[k], expected_n[k], resampled[k] = r.ess, r.expected_n_targets, r.resampled

@@ -210,9 +210,12 @@ class RBPF:
         """Whether the last step resampled."""
         return self._resampled
 
-    def _advance(self, scan: np.ndarray) -> RBPFReport:
+    def _advance(self, scan: np.ndarray, name: str = "scan") -> RBPFReport:
         """One step on a checked scan (k, d); the state changes only if it succeeds."""
-        self._state, report = filter_step(self._state, scan, self.params, self._rng)
+        with np.errstate(over="ignore", invalid="ignore"):  # refused just below
+            state, report = filter_step(self._state, scan, self.params, self._rng)
+        _checks.step_estimates(name, self._steps, report.mean, report.cov)
+        self._state = state
         self._steps += 1
         self._ess, self._resampled = report.ess, report.resampled
         return report
@@ -238,5 +241,5 @@ def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Genera
     means, covs = np.empty((T, n)), np.empty((T, n, n))
     ess, resampled = np.empty(T), np.zeros(T, dtype=bool)
     for t, scan in enumerate(scans):
-        means[t], covs[t], ess[t], resampled[t] = pf._advance(scan)
+        means[t], covs[t], ess[t], resampled[t] = pf._advance(scan, f"scans[{t}]")
     return RBPFOutput(means, covs, ess, resampled)

@@ -15,6 +15,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fusion_opt import FusionInputError
+from fusion_opt.validation import real_array
+from trackers import _checks
+
 
 def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
     """log(sum(exp(a))) along ``axis``, stable for large |a| and exact for -inf entries.
@@ -36,8 +40,16 @@ def normalize_log_weights(logw: np.ndarray) -> np.ndarray:
 
     The peak is taken out first: l - logsumexp(l) would lose log N to rounding when every
     l_i shares an offset of 1e16 or more (a measurement far from every particle).
+    Refuses an empty array, NaN, +inf, and all -inf (weights that are all 0).
     """
-    shifted = logw - logw.max()
+    logw = real_array(logw, "logw")
+    if logw.ndim != 1 or logw.size == 0:
+        raise FusionInputError(f"logw must be a non-empty (N,) array, got shape {logw.shape}")
+    peak = logw.max()  # NaN if any is NaN
+    if not np.isfinite(peak):
+        raise FusionInputError(f"logw must be finite or -inf with at least one finite "
+                               f"(no NaN, no +inf, not all weights 0), got max {peak}")
+    shifted = logw - peak
     return shifted - np.log(np.exp(shifted).sum())
 
 
@@ -49,7 +61,7 @@ def effective_sample_size(logw: np.ndarray) -> float:
 
 def systematic_resample(logw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Indices (N,) of the ancestors chosen by systematic resampling."""
-    return _systematic(np.exp(normalize_log_weights(logw)), rng)
+    return _systematic(np.exp(normalize_log_weights(logw)), _checks.generator("rng", rng))
 
 
 def _systematic(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -79,10 +91,13 @@ class StepEnd(NamedTuple):
 def end_of_step(logw: np.ndarray, threshold: float, rng: np.random.Generator) -> StepEnd:
     """Normalise log-weights (N,), compute the ESS and resample systematically if
     ESS < threshold (an absolute particle count). Draws from ``rng`` only when resampling."""
+    if not threshold >= 0.0:  # also NaN
+        raise FusionInputError(f"threshold must be a particle count >= 0, got {threshold!r}")
     logw = normalize_log_weights(logw)
     w = np.exp(logw)
     ess = float(1.0 / (w @ w))
     if ess >= threshold:
         return StepEnd(w, ess, None, logw)
     N = w.shape[0]
-    return StepEnd(w, ess, _systematic(w, rng), np.full(N, -np.log(N)))
+    return StepEnd(w, ess, _systematic(w, _checks.generator("rng", rng)),
+                   np.full(N, -np.log(N)))
