@@ -35,8 +35,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from .estimates import Estimates
+from .estimates import Estimates, track_ids
 from .results import FusionInputError
+from .validation import hashable
 
 __all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
@@ -50,7 +51,8 @@ class Group:
     sources (k,): distinct source names, in the order of the reports;
     ids (k,) int64: each member's track id at its source (ids of different sources may
     coincide, which is why a group is not an `Estimates`);
-    means (k, n), covs (k, n, n): the members' estimates."""
+    means (k, n), covs (k, n, n): the members' estimates.
+    Made by hand, it is checked as an `Estimates` is (but for the ids' uniqueness)."""
 
     sources: tuple[Hashable, ...]
     ids: np.ndarray
@@ -58,8 +60,34 @@ class Group:
     covs: np.ndarray
 
     def __post_init__(self):
-        for a in (self.ids, self.means, self.covs):
+        sources = self.sources
+        if isinstance(sources, str | bytes) or not isinstance(sources, tuple | list) \
+                or not all(hashable(s) for s in sources) or len(set(sources)) != len(sources):
+            raise FusionInputError(f"Group: sources must be distinct hashable names, got "
+                                   f"{sources!r}")
+        try:
+            checked = Estimates(self.means, self.covs)  # means (k, n), covs (k, n, n)
+            ids = track_ids(self.ids, len(checked), unique=False)
+        except FusionInputError as exc:
+            raise FusionInputError(f"Group: {exc}") from None
+        if len(checked) != len(sources):
+            raise FusionInputError(f"Group: {len(sources)} sources but {len(checked)} "
+                                   "estimates")
+        self._set(tuple(sources), ids, checked.means, checked.covs)
+
+    @classmethod
+    def _of(cls, sources, ids, means, covs) -> Group:
+        """A group of `associate`'s checked arrays, taken without copies or checks."""
+        group = object.__new__(cls)
+        group._set(sources, ids, means, covs)
+        return group
+
+    def _set(self, sources, ids, means, covs) -> None:
+        for a in (ids, means, covs):
             a.setflags(write=False)
+        for name, value in zip(("sources", "ids", "means", "covs"), (sources, ids, means, covs),
+                               strict=True):
+            object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
         return len(self.sources)
@@ -87,7 +115,7 @@ def associate(reports: Mapping[Hashable, Estimates], threshold: float,
     members = (_nearest if method == "nearest" else _assignment)(points, owner, threshold)
     covs = np.concatenate([r.covs for r in reports])
     ids = np.concatenate([r.ids for r in reports])
-    return [Group(tuple(names[k] for k in owner[idx]), ids[idx], means[idx], covs[idx])
+    return [Group._of(tuple(names[k] for k in owner[idx]), ids[idx], means[idx], covs[idx])
             for idx in members]
 
 

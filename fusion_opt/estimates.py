@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .results import FusionInputError
-from .validation import check_spd, finite_array, real_array
+from .validation import check_spd, finite_array, hashable, real_array
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,7 +37,7 @@ class Estimates:
     node: Hashable | None = None
 
     def __post_init__(self):
-        if self.node is not None and not isinstance(self.node, Hashable):
+        if self.node is not None and not hashable(self.node):
             raise FusionInputError(f"node must be hashable (a name), got "
                                    f"{type(self.node).__name__}")
         try:
@@ -68,8 +68,19 @@ class Estimates:
         return self.means.shape[1]
 
     def take(self, indices) -> Estimates:
-        """The estimates at `indices` (positions, not ids), same time and node."""
-        idx = np.asarray(indices, dtype=np.intp).reshape(-1)
+        """The estimates at `indices`, same time and node: integer positions (not ids) in
+        [-m, m), or a boolean mask (m,)."""
+        idx = np.asarray(indices) if not isinstance(indices, str | bytes) else None
+        m = len(self)
+        if idx is not None and idx.dtype == bool and idx.shape == (m,):
+            idx = np.flatnonzero(idx)
+        elif idx is not None and idx.size == 0:
+            idx = np.zeros(0, dtype=np.intp)
+        if idx is None or idx.dtype.kind not in "iu" or idx.ndim > 1 \
+                or (idx.size and not -m <= idx.min() <= idx.max() < m):
+            raise FusionInputError(f"indices must be integer positions in [-{m}, {m}) or a "
+                                   f"boolean mask ({m},), got {indices!r}")
+        idx = idx.reshape(-1)
         return Estimates(self.means[idx], self.covs[idx], self.ids[idx], self.time, self.node)
 
     def __repr__(self) -> str:
@@ -85,7 +96,7 @@ def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise FusionInputError(f"means must have shape (m, n) with n >= 1, got "
                                f"{means.shape}{hint}")
     m, n = means.shape
-    ids = _ids(ids, m)
+    ids = track_ids(ids, m)
     covs = finite_array(covs, "covs")
     if covs.shape != (m, n, n):
         raise FusionInputError(f"covs must have shape {(m, n, n)} to match means, got "
@@ -93,8 +104,8 @@ def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return means, check_spd(covs, "covs", item="estimate", labels=ids), ids
 
 
-def _ids(ids, m: int) -> np.ndarray:
-    """Integer track ids (m,), unique; arange(m) when None."""
+def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
+    """Integer track ids (m,) as int64, unique unless told; arange(m) when None."""
     if ids is None:
         return np.arange(m, dtype=np.int64)
     try:
@@ -102,14 +113,16 @@ def _ids(ids, m: int) -> np.ndarray:
     except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
         raise FusionInputError(f"ids must be integers (map other track names to integers): "
                                f"{exc}") from None
+    if np.asarray(ids).dtype.kind in "iu":
+        a = np.asarray(ids)  # integers as given: as floats, ids above 2^53 would merge
     if a.shape != (m,):
         raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
-    if np.asarray(ids).dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
         raise FusionInputError("ids must be integers")
-    if m and np.abs(a).max() >= 2**62:
+    if m and (a.max() >= 2**62 or a.min() <= -(2**62)):
         raise FusionInputError("ids must fit in a 64-bit integer")
     out = a.astype(np.int64)
-    if len(np.unique(out)) != m:
+    if unique and len(np.unique(out)) != m:
         raise FusionInputError(f"ids must be unique within one Estimates, got {out.tolist()}")
     return out
 

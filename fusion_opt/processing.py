@@ -45,6 +45,7 @@ from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates
 from .results import FusionInputError
+from .validation import hashable
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
 PAIRWISE = ("ci", "ici", "ei")
@@ -181,7 +182,7 @@ class ProcessingNode:
         sources = tuple(sources)
         if not sources:
             raise self._err("sources is empty: a processing node needs at least one source")
-        bad = [s for s in sources if not isinstance(s, Hashable)]
+        bad = [s for s in sources if not hashable(s)]
         if bad:
             raise self._err(f"sources must be hashable names, got {bad!r}")
         repeated = sorted({repr(s) for s in sources if sources.count(s) > 1})
@@ -296,7 +297,7 @@ class _Track(NamedTuple):
 
 
 def _check_name(name):
-    if name is not None and not isinstance(name, Hashable):
+    if name is not None and not hashable(name):
         raise FusionInputError(f"ProcessingNode: name must be hashable, got {name!r}")
     return name
 

@@ -25,6 +25,16 @@ def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
     return f"problem {index[:-1] if len(index) > 2 else index[0]}, {item} {index[-1]}"
 
 
+def hashable(value) -> bool:
+    """Whether value can name something (a dict key): hash() succeeds. isinstance(value,
+    Hashable) is True for a tuple holding a list, which then fails as a key."""
+    try:
+        hash(value)
+    except TypeError:
+        return False
+    return True
+
+
 def check_criterion(criterion) -> str:
     if criterion not in CRITERIA:
         raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
@@ -102,13 +112,24 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
         raise FusionInputError(
             f"{name} of {_where(idx, item, labels)} is not symmetric: max |P - P^T| = "
             f"{asym[idx]:.3g} exceeds {SYMMETRY_RTOL:g} x max |P| = {scale[idx]:.3g}")
-    sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    sym = symmetrised(covs)
     ok = cholesky_ok(sym)
     if not ok.all():
         idx = tuple(int(i) for i in np.argwhere(~ok)[0])
         eig = np.linalg.eigvalsh(sym[idx]).min()
         raise FusionInputError(f"{name} of {_where(idx, item, labels)} is not positive definite "
                                f"(smallest eigenvalue {eig:.3g})")
+    return sym
+
+
+def symmetrised(covs: np.ndarray) -> np.ndarray:
+    """(P + P^T) / 2 for finite P (..., n, n), exactly symmetric; halved before the sum
+    where the sum overflows (entries near 1.8e308), after it elsewhere, where halving first
+    would round away a subnormal's last bit."""
+    with np.errstate(over="ignore"):
+        sym = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+    if not np.isfinite(sym).all():
+        sym = 0.5 * covs + 0.5 * np.swapaxes(covs, -1, -2)
     return sym
 
 

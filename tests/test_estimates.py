@@ -58,3 +58,43 @@ def test_errors_name_the_node_the_time_and_the_track_id():
     with pytest.raises(fo.FusionInputError, match=r"^Estimates of node 'radar3' at time 1.5: "
                                                     r"covs of estimate 1 \(id 17\) is not sym"):
         fo.Estimates(M, bad, [7, 17], time=1.5, node="radar3")
+
+
+def test_extreme_values_are_kept_exactly():
+    """Regression: symmetrising 1e308 I as (P + P^T) / 2 overflowed to inf, and integer ids
+    went through float64, where 2^53 + 1 became 2^53 (a clash)."""
+    e = fo.Estimates(np.zeros((1, 2)), 1e308 * np.eye(2)[None])
+    np.testing.assert_array_equal(e.covs[0], 1e308 * np.eye(2))
+    tiny = np.array([[[5e-324, 0.0], [0.0, 5e-324]]])  # subnormal: halved first, it is 0
+    np.testing.assert_array_equal(fo.Estimates(np.zeros((1, 2)), tiny).covs, tiny)
+    ids = fo.Estimates(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), [2**53, 2**53 + 1]).ids
+    assert ids.tolist() == [2**53, 2**53 + 1]
+
+
+def test_take_positions_or_a_mask_and_refuses_the_rest():
+    """Regression: take([5]) raised IndexError, take([0.5]) truncated to 0, and a boolean
+    mask was read as positions 1 and 0."""
+    e = fo.Estimates(np.arange(6.0).reshape(3, 2), np.stack([np.eye(2)] * 3), [7, 8, 9])
+    assert e.take([True, False, True]).ids.tolist() == [7, 9]
+    assert e.take([2, -3]).ids.tolist() == [9, 7] and len(e.take([])) == 0
+    for bad in ([3], [0.5], "a", None, [True]):
+        with pytest.raises(fo.FusionInputError, match=r"integer positions in \[-3, 3\)"):
+            e.take(bad)
+
+
+def test_a_node_name_must_work_as_a_key():
+    """Regression: a tuple holding a list passed isinstance(node, Hashable)."""
+    with pytest.raises(fo.FusionInputError, match="node must be hashable"):
+        fo.Estimates(np.zeros((1, 2)), np.eye(2)[None], node=(1, [2]))
+
+
+def test_a_group_made_by_hand_is_checked():
+    """Regression: lists raised AttributeError (setflags) and nothing was checked."""
+    g = fo.Group(("a", "b"), [1, 1], [[0.0, 0.0], [1.0, 1.0]], [np.eye(2)] * 2)
+    assert g.pairs == (("a", 1), ("b", 1)) and not g.covs.flags.writeable
+    for args, match in (((("a",), [1], [[0.0, 0.0]], [-np.eye(2)]), "not positive definite"),
+                        ((("a", "a"), [1, 2], [[0, 0], [1, 1]], [np.eye(2)] * 2), "distinct"),
+                        ((("a",), [1.5], [[0.0, 0.0]], [np.eye(2)]), "ids must be integers"),
+                        ((("a", "b"), [1], [[0.0, 0.0]], [np.eye(2)]), "2 sources but 1")):
+        with pytest.raises(fo.FusionInputError, match=match):
+            fo.Group(*args)

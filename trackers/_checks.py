@@ -9,7 +9,7 @@ silently converted (a complex value is never truncated to its real part).
 from __future__ import annotations
 
 import numbers
-from collections.abc import Hashable, Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -101,7 +101,7 @@ def boolean(name: str, value) -> bool:
 
 def node_name(value):
     """A tracker's name, stamped on its Estimates as the node: any hashable, or None."""
-    if value is not None and not isinstance(value, Hashable):
+    if value is not None and not _fo.hashable(value):
         raise FusionInputError(f"name must be hashable (e.g. a string), got "
                                f"{type(value).__name__}")
     return value
