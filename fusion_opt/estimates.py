@@ -41,7 +41,7 @@ class Estimates:
             raise FusionInputError(f"node must be hashable (a name), got "
                                    f"{type(self.node).__name__}")
         try:
-            object.__setattr__(self, "time", _time(self.time))
+            object.__setattr__(self, "time", check_time(self.time))
             arrays = _arrays(self.means, self.covs, self.ids)
         except FusionInputError as exc:  # say whose estimates, when it is known
             where = " ".join(f"{k} {v!r}" for k, v in (("of node", self.node),
@@ -127,7 +127,8 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
     return out
 
 
-def _time(time) -> float | None:
+def check_time(time) -> float | None:
+    """A time stamp: None or a finite real number, as a float."""
     if time is None:
         return None
     if isinstance(time, bool) or not isinstance(time, numbers.Real) or not np.isfinite(time):

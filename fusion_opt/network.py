@@ -31,6 +31,10 @@ fixed at construction) and a cycle is refused. Each step:
 `step` returns the Estimates of every node that reported; `run` returns each node's
 Estimates in step order (one per step at which it reported: one per step when every
 tracker has a scan at every step).
+
+A step that fails raises FusionInputError naming the node, and the nodes that had
+stepped before it (the network cannot take a tracker's step back; the trackers of this
+package keep their state when they refuse a scan, so the failing one has not stepped).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import dataclasses
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any, Protocol
 
-from .estimates import Estimates
+from .estimates import Estimates, check_time
 from .processing import ProcessingNode
 from .results import FusionInputError
 
@@ -71,22 +75,28 @@ class Network:
         if unknown:
             raise FusionInputError(f"scans for unknown trackers {unknown}; the trackers are "
                                    f"{list(self.trackers)}")
+        time = check_time(time)  # before any node steps
         out = {}
-        for name, tracker in self.trackers.items():
-            if name in scans:
-                out[name] = _tracker_step(name, tracker, scans[name])
-        for name in self.order:
-            node = self.processing[name]
-            reports = {s: out[s] for s in node.sources if s in out}
-            if reports:
-                out[name] = _processing_step(name, node, reports, time)
+        try:
+            for name, tracker in self.trackers.items():
+                if name in scans:
+                    out[name] = _tracker_step(name, tracker, scans[name])
+            for name in self.order:
+                node = self.processing[name]
+                reports = {s: out[s] for s in node.sources if s in out}
+                if reports:
+                    out[name] = _processing_step(name, node, reports, time)
+        except FusionInputError as exc:
+            stepped = f" (nodes {list(out)} had stepped)" if out else ""
+            raise FusionInputError(f"{exc}{stepped}") from exc
         return out
 
     def run(self, scan_series: Iterable[Mapping[Hashable, Any]],
             times: Sequence[float] | None = None) -> dict[Hashable, list[Estimates]]:
         """`step` over scan_series (one mapping of scans per step), with times[t] as the
         time of step t if given; each node's Estimates in step order."""
-        scan_series = list(scan_series)
+        scan_series = _sequence(scan_series, "scan_series")
+        times = None if times is None else [check_time(t) for t in _sequence(times, "times")]
         if times is not None and len(times) != len(scan_series):
             raise FusionInputError(f"times must have one entry per step ({len(scan_series)}), "
                                    f"got {len(times)}")
@@ -106,8 +116,19 @@ def _processing_step(name, node, reports, time) -> Estimates:
     return fused if fused.node is not None else dataclasses.replace(fused, node=name)
 
 
+def _sequence(value, name: str) -> list:
+    """value (an iterable, not a string or mapping) as a list."""
+    if isinstance(value, str | bytes | Mapping) or not isinstance(value, Iterable):
+        raise FusionInputError(f"{name} must be a sequence (one entry per step), got "
+                               f"{type(value).__name__}")
+    return list(value)
+
+
 def _tracker_step(name, tracker, scan) -> Estimates:
-    estimates = tracker.step(scan)
+    try:
+        estimates = tracker.step(scan)
+    except FusionInputError as exc:  # name the tracker as the network knows it
+        raise FusionInputError(f"tracker {name!r}: {exc}") from exc
     if not isinstance(estimates, Estimates):
         raise FusionInputError(f"tracker {name!r} returned {type(estimates).__name__} from "
                                f"step, not an Estimates")

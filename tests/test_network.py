@@ -226,3 +226,29 @@ def test_readme_network_example_runs():
     namespace = {}
     exec(compile(code, "README.md", "exec"), namespace)
     assert isinstance(namespace["fused"], fo.Estimates)
+
+
+def test_a_failing_step_names_its_tracker_and_what_had_stepped():
+    """Regression: a tracker's refusal did not say which tracker, a bad time was found
+    only after every tracker had stepped, and run(times=5) or run(None) raised TypeError."""
+    from trackers import kalman, models
+    eye = np.eye(2)
+
+    def kf():
+        return kalman.KalmanFilter(models.LinearGaussian(eye, eye, eye, eye), np.zeros(2), eye)
+
+    net = fo.Network({"a": kf(), "b": kf()},
+                     {"f": fo.ProcessingNode(["a", "b"], threshold=10.0, method="bci")})
+    with pytest.raises(fo.FusionInputError,
+                       match=r"tracker 'b': scan contains non-finite.*nodes \['a'\] had stepped"):
+        net.step({"a": [[0.0, 0.0]], "b": [[np.nan, 0.0]]})
+    assert net.trackers["a"].steps == 1 and net.trackers["b"].steps == 0
+    for time in ("x", np.nan):
+        with pytest.raises(fo.FusionInputError, match="time must be a finite real number"):
+            net.step({"a": [[0.0, 0.0]]}, time)
+    assert net.trackers["a"].steps == 1  # refused before any node stepped
+    with pytest.raises(fo.FusionInputError, match="times must be a sequence"):
+        net.run([{"a": []}], times=5)
+    with pytest.raises(fo.FusionInputError, match="scan_series must be a sequence"):
+        net.run(None)
+    assert len(net.run([{"a": []}], times=(t for t in [1.0]))["f"]) == 1

@@ -184,7 +184,9 @@ def test_metrics_at_the_ends_of_float64_by_hand():
 
 @pytest.mark.parametrize("call, match", [
     (lambda: metrics.mse(np.zeros((0, 4)), np.zeros((0, 4))), "at least one step"),
-    (lambda: metrics.mncm(np.zeros((0, 4, 4))), r"T >= 1"),
+    (lambda: metrics.mncm(np.zeros((0, 4, 4))), "mean over no step"),
+    (lambda: metrics.anees(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2, 2))),
+     "mean over no step"),
     (lambda: metrics.mncm(-np.eye(2)[None]), r"covs\[0\] is not positive semidefinite"),
     (lambda: metrics.nees(np.ones((3, 4)), np.zeros((3, 4)), np.zeros((3, 4, 4))),
      r"covs\[0\] is not positive definite"),

@@ -55,14 +55,14 @@ def _pair(estimates, truth):
     x = _checks.finite_array("truth", truth, ndim=2)
     if m.shape != x.shape:
         raise FusionInputError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
-    if m.shape[0] == 0:
-        raise FusionInputError("estimates and truth must hold at least one step, got none")
     return m, x
 
 
 def _errors(estimates, truth, components) -> np.ndarray:
-    """The errors (T, k) of the components, refused if a difference overflows."""
+    """The errors (T, k) of the components, T >= 1, refused if a difference overflows."""
     m, x = _pair(estimates, truth)
+    if m.shape[0] == 0:
+        raise FusionInputError("estimates and truth must hold at least one step, got none")
     with np.errstate(over="ignore"):
         e = _components(m - x, components)
     if not np.isfinite(e).all():
@@ -95,10 +95,10 @@ def rmse(estimates, truth, components=None) -> float:
 
 
 def _cov_block(covs, components):
-    """The (T, k, k) blocks of symmetric positive semidefinite covariances (T, n, n), T >= 1."""
+    """The (T, k, k) blocks of symmetric positive semidefinite covariances (T, n, n)."""
     P = _checks.finite_array("covs", covs, ndim=3)
-    if P.shape[1] != P.shape[2] or P.shape[0] == 0:
-        raise FusionInputError(f"covs must be (T, n, n) with T >= 1, got {P.shape}")
+    if P.shape[1] != P.shape[2]:
+        raise FusionInputError(f"covs must be (T, n, n), got {P.shape}")
     if components is not None:
         idx = _indices(components, P.shape[1])
         P = P[:, idx[:, None], idx[None, :]]
@@ -124,8 +124,10 @@ def mncm(covs, components=None) -> float:
 
 
 def _mean(values: np.ndarray) -> float:
-    """The mean of finite values (T,) >= 0, taken over values scaled by their largest when
-    their sum would overflow."""
+    """The mean of finite values (T,) >= 0, T >= 1, taken over values scaled by their
+    largest when their sum would overflow."""
+    if values.size == 0:
+        raise FusionInputError("a mean over no step is undefined: give at least one step")
     with np.errstate(over="ignore"):
         value = float(np.mean(values))
     if np.isfinite(value):
