@@ -171,9 +171,15 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     M = len(points)
     if M == 0:
         return []
-    pairs = cKDTree(points).query_pairs(threshold, output_type="ndarray")  # (P, 2), i < j
-    d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
-    keep = (d < threshold) & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
+    # the pairs within threshold in every component, a superset of those within it in
+    # distance, found without squaring (coordinates of 1e200 would overflow there); on
+    # halved points (pairs within threshold / 2 + rounding) if a span overflows the tree
+    with np.errstate(over="ignore"):
+        wide = not np.isfinite(np.ptp(points, axis=0)).all()
+    tree = cKDTree(0.5 * points if wide else points)
+    pairs = tree.query_pairs(threshold, p=np.inf, output_type="ndarray")
+    d, near = _distance(points[pairs[:, 0]] - points[pairs[:, 1]], threshold)
+    keep = near & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
     pairs, d = pairs[keep], d[keep]
     label = _components(pairs, M)
     conflicted = _repeats_a_source(label, owner)
@@ -183,6 +189,29 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     order = np.argsort(label, kind="stable")  # stable: members stay in report order
     groups = np.split(order, np.flatnonzero(np.diff(label[order])) + 1)
     return sorted(groups, key=lambda g: g[0])
+
+
+def _distance(diff: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances |diff| over the last axis in units of threshold's power of two s (exact:
+    the squares stay in float64 for any threshold), and whether each is below threshold;
+    a difference that overflowed (inf) is never below it."""
+    s = 2.0 ** np.frexp(threshold)[1]
+    with np.errstate(over="ignore", invalid="ignore"):
+        d = np.linalg.norm(diff / s, axis=-1)
+    return d, d < threshold / s
+
+
+def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
+    """`_distance` of points p (m, d) to centroids c (K, d), (m, K); by scipy's cdist
+    (faster than the differences) unless a coordinate in units of s overflows."""
+    s = 2.0 ** np.frexp(threshold)[1]
+    with np.errstate(over="ignore"):
+        ps, cs = p / s, c / s
+    if np.isfinite(ps).all() and np.isfinite(cs).all():
+        with np.errstate(over="ignore"):
+            d = cdist(ps, cs)
+        return d, d < threshold / s
+    return _distance(p[:, None, :] - c[None], threshold)
 
 
 def _components(pairs: np.ndarray, M: int) -> np.ndarray:
@@ -233,14 +262,15 @@ def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list
     """Source by source, gated optimal assignment to the groups' centroids."""
     groups: list[list[int]] = []
     centroids: list[np.ndarray] = []
+    s = 2.0 ** np.frexp(threshold)[1]  # `_distance`'s unit
     for k in np.unique(owner):
         flat = np.flatnonzero(owner == k)
         p = points[flat]
         rows = cols = np.array([], dtype=int)
         if groups:
-            cost = cdist(p, np.array(centroids))
-            rows, cols = linear_sum_assignment(np.where(cost < threshold, cost, 1e6 * threshold))
-            ok = cost[rows, cols] < threshold
+            cost, near = _centroid_distance(p, np.array(centroids), threshold)
+            rows, cols = linear_sum_assignment(np.where(near, cost, 1e6 * (threshold / s)))
+            ok = near[rows, cols]
             rows, cols = rows[ok], cols[ok]
         for i, g in zip(rows.tolist(), cols.tolist(), strict=True):
             groups[g].append(int(flat[i]))

@@ -160,3 +160,20 @@ def test_components_equal_scipys_connected_components():
         ref = connected_components(graph, directed=False)[1]
         same, same_ref = label[:, None] == label[None], ref[:, None] == ref[None]
         np.testing.assert_array_equal(same, same_ref)
+
+
+@pytest.mark.parametrize("method", fo.association.METHODS)
+def test_coordinates_and_thresholds_at_the_ends_of_float64(method):
+    """Regression: points 3.4e308 apart overflowed scipy's k-d tree (a raw ValueError), a
+    threshold of 1e303 overflowed the assignment's gate cost 1e6 x threshold (cost matrix
+    infeasible), and squared distances of 1e190 overflowed, so a pair 1e190 apart was not
+    within a threshold of 1e195."""
+    cases = ((([[1.7e308] * 2], [[-1.7e308] * 2]), 1.0, [[("s0", 0)], [("s1", 0)]]),
+             (([[0.0, 0.0]], [[1.0, 1.0]], [[5e307, 0.0]]), 1e303,
+              [[("s0", 0), ("s1", 0)], [("s2", 0)]]),
+             (([[1e200, 1e200]], [[1e200 + 1e190, 1e200]]), 1e195, [[("s0", 0), ("s1", 0)]]),
+             (([[1e200, 1e200]], [[1e200, 1e200]]), 1e-300, [[("s0", 0), ("s1", 0)]]),
+             (([[1e-300, 0.0]], [[3e-300, 0.0]]), 1e-300, [[("s0", 0)], [("s1", 0)]]))
+    for means, threshold, want in cases:
+        groups = fo.associate(_reports(*means), threshold, method)
+        assert [list(g.pairs) for g in groups] == want
