@@ -12,6 +12,9 @@ conic_memory: the estimated memory of a conic solve by "clarabel" / "clarabel-di
 working_memory: the estimated memory of the native solvers' work arrays for one problem:
     the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles, and five
     stacks of N n x n matrices (factors, their QR, a subproblem's factors).
+array_memory: the estimated memory of the arrays a tracker (its particles and a step's
+    temporaries) or a scenario simulator (a run's truth and measurements) allocates,
+    checked when it is configured.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ class Limits:
 
     conic_memory: float = 4 * _GIB
     working_memory: float = 4 * _GIB
+    array_memory: float = 4 * _GIB
 
     def __setattr__(self, name, value):
         if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:

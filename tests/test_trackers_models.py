@@ -61,7 +61,7 @@ def test_linear_gaussian_is_frozen_and_read_only():
     [
         ({"A": np.eye(3)}, "Q must have shape"),
         ({"A": np.full((4, 4), np.nan)}, "A contains non-finite"),
-        ({"H": np.eye(2, 3)}, "H must have 4 columns"),
+        ({"H": np.eye(2, 3)}, r"H must be \(d, 4\) with d >= 1"),
         ({"R": -np.eye(2)}, "R must be positive definite"),
         ({"Q": np.diag([1.0, 1.0, 1.0, -1.0])}, "Q must be positive semidefinite"),
         ({"R": np.array([[1.0, 0.5], [0.0, 1.0]])}, "R must be symmetric"),
@@ -93,3 +93,12 @@ def test_discretize_rejects_bad_input():
             models.turn_F(bad)
         with pytest.raises(FusionInputError, match="dt must be a real number"):
             models.turn_model(0.0, 0.1, 0.05, bad)
+
+
+def test_a_step_whose_model_overflows_names_dt():
+    """Regression: dt = 1e300 was refused as "A contains non-finite values", an argument
+    the caller never gave."""
+    with pytest.raises(FusionInputError, match="dt = 1e[+]300 is too long a step"):
+        models.turn_model(0.0, 1.0, 1.0, 1e300)
+    with pytest.raises(FusionInputError, match="A must be square with n >= 1"):
+        models.LinearGaussian(*(np.zeros((0, 0)),) * 4)

@@ -206,3 +206,9 @@ def test_a_step_float64_cannot_hold_is_refused_and_the_filter_goes_on():
     with pytest.raises(FusionInputError, match=r"scans\[1\]: step 2's estimate"):
         rbpf.run([[[0.0, 0.0]], [[1e100, 1e100]]], model, m0, P0,
                  rng=np.random.default_rng(0), clutter_prior=0.0)
+
+
+def test_particle_counts_beyond_memory_are_refused_before_allocating():
+    _, model, m0, P0 = table1()
+    with pytest.raises(FusionInputError, match=r"n_particles = 1000000000000: about .* GiB"):
+        rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), n_particles=10**12)

@@ -229,3 +229,19 @@ def test_scenario_measurements_follow_the_detection_model():
 def test_crossing_config_refuses_bad_fields_by_name(field, value, match):
     with pytest.raises(FusionInputError, match=match):
         scenarios.CrossingConfig(**{field: value})
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: scenarios.Table1Config(n_steps=10**12), r"n_steps = 1000000000000: about"),
+    (lambda: scenarios.Table2Config(n_steps=2, clutter_rate=1e12), "clutter_rate: about"),
+    (lambda: scenarios.CrossingConfig(n_targets=10**12), "n_targets and clutter_rate: about"),
+    (lambda: scenarios.Table2Config(targets=[scenarios.TargetSpec((0, 0, 1, 0), -1e300, 1)]),
+     "targets and clutter_rate: about"),
+    (lambda: scenarios.Table1Config(n_steps=5, dt=1e300), "too long a step"),
+    (lambda: scenarios.Table1Config(region=((-1.7e308, 1.7e308), (0, 1))), "width overflows")])
+def test_configs_whose_runs_float64_or_memory_cannot_hold_are_refused(make, match):
+    """Regression: each asked for terabytes (or was OOM-killed: a target born at -1e3 s is
+    propagated from there at dt = 1e-6), returned NaN truth, or raised OverflowError when
+    simulated; now the configuration is refused before anything is allocated."""
+    with pytest.raises(FusionInputError, match=match):
+        make()

@@ -69,9 +69,13 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     M[:n, :n] = -F
     M[:n, n:] = L @ Qc @ L.T
     M[n:, n:] = F.T
-    G = expm(M * dt)
-    A = G[n:, n:].T
-    Q = A @ G[:n, n:]
+    with np.errstate(over="ignore", invalid="ignore"):
+        G = expm(M * dt)
+        A = G[n:, n:].T
+        Q = A @ G[:n, n:]
+    if not (np.isfinite(A).all() and np.isfinite(Q).all()):
+        raise FusionInputError(f"dt = {dt:g} is too long a step for this F and Qc: its "
+                               "transition or process noise overflows float64")
     # Q is symmetric in exact arithmetic; remove the rounding asymmetry so Cholesky works.
     return A, 0.5 * (Q + Q.T)
 
@@ -94,12 +98,13 @@ class LinearGaussian:
     def __post_init__(self) -> None:
         A = _checks.finite_array("A", self.A, ndim=2)
         n = A.shape[0]
-        if A.shape != (n, n):
-            raise FusionInputError(f"A must be square, got shape {A.shape}")
+        if A.shape != (n, n) or n == 0:
+            raise FusionInputError(f"A must be square with n >= 1, got shape {A.shape}")
         Q = _checks.psd_covariance("Q", self.Q, n)
         H = _checks.finite_array("H", self.H, ndim=2)
-        if H.shape[1] != n:
-            raise FusionInputError(f"H must have {n} columns to match A, got shape {H.shape}")
+        if H.shape[1] != n or H.shape[0] == 0:
+            raise FusionInputError(f"H must be (d, {n}) with d >= 1 to match A, got shape "
+                                   f"{H.shape}")
         R = _checks.covariance("R", self.R, H.shape[0])
         for name, arr in (("A", A), ("Q", Q), ("H", H), ("R", R)):
             arr = np.array(arr, dtype=float)

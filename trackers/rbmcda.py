@@ -356,6 +356,8 @@ class RBMCDA:
         m0, P0 = kalman.check_prior(model, m0, P0)
         self._rng = _checks.generator("rng", rng)
         N = _checks.positive_int("n_particles", n_particles)
+        # the particles' 4 first slots and a step's temporaries (about 8 copies)
+        _checks.fits(f"n_particles = {N}", 8.0 * 8 * 4 * N * (model.n**2 + model.n + 3))
         pb = _checks.probability("birth_prob", birth_prob)
         cp = _checks.probability("clutter_prior", clutter_prior)
         if pb == 0.0 and cp == 0.0:

@@ -169,6 +169,7 @@ class RBPF:
         m0, P0 = kalman.check_prior(model, m0, P0)
         self._rng = _checks.generator("rng", rng)
         N = _checks.positive_int("n_particles", n_particles)
+        _checks.fits(f"n_particles = {N}", 8.0 * 8 * N * (model.n**2 + model.n + 1))
         cp = _checks.probability("clutter_prior", clutter_prior)
         cd = _checks.positive("clutter_density", clutter_density)
         thr = _checks.probability("resample_threshold", resample_threshold) * N

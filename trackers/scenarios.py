@@ -97,9 +97,13 @@ def _propagate(x0, rates, dt, q, process_noise, rng):
 
 
 def _check_shared(cfg) -> None:
-    """The fields both scenario configurations have: time grid, motion, detection, filter."""
+    """The fields both scenario configurations have: time grid, motion, detection, filter;
+    a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
     _checks.positive("dt", cfg.dt)
     _checks.positive_int("n_steps", cfg.n_steps)
+    if not np.isfinite(cfg.dt * cfg.n_steps):
+        raise FusionInputError(f"dt x n_steps must be a finite time, got {cfg.dt} x "
+                               f"{cfg.n_steps}")
     _checks.positive("q", cfg.q)
     _check_region("region", cfg.region)
     _checks.nonnegative("turn_noise_sd", cfg.turn_noise_sd)
@@ -115,12 +119,16 @@ def _check_shared(cfg) -> None:
     _checks.positive("clutter_density", cfg.clutter_density)
     _checks.positive("prior_cov", cfg.prior_cov)
     _checks.probability("resample_threshold", cfg.resample_threshold)
+    _checks.fits(f"n_steps = {cfg.n_steps}", 8.0 * cfg.n_steps * (5 + 12 * len(cfg.p_detect)))
 
 
 def _check_region(name, region):
     r = _checks.finite_array(name, region, shape=(2, 2))
     if np.any(r[:, 1] <= r[:, 0]):
         raise FusionInputError(f"{name} must be ((xmin, xmax), (ymin, ymax)) with min < max")
+    with np.errstate(over="ignore"):
+        if not np.isfinite(r[:, 1] - r[:, 0]).all():
+            raise FusionInputError(f"{name}'s width overflows float64: {r.tolist()}")
     return r
 
 
@@ -175,6 +183,7 @@ class Table1Config:
         _checks.finite_array("x0", self.x0, shape=(4,))
         _check_windows("turn_windows", self.turn_windows)
         _checks.probability("clutter_fraction", self.clutter_fraction)
+        self.filter_model()  # dt, q and r give a model float64 holds
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
@@ -320,6 +329,17 @@ class Table2Config:
         _checks.probability("birth_prob", self.birth_prob)
         _checks.positive("lifetime_shape", self.lifetime_shape)
         _checks.positive("lifetime_scale", self.lifetime_scale)
+        self.filter_model()  # dt, q and meas_sd give a model float64 holds
+        _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
+
+    def _run_bytes(self) -> float:
+        """About the bytes of a simulated run: the truth, each target's propagation from
+        its birth, and each node's measurements (a few hundred bytes a point, in lists)."""
+        T, end = self.n_steps, self.n_steps * self.dt
+        propagated = sum(max(0.0, (min(tg.death, end) - tg.birth) / self.dt)
+                         for tg in self.targets)
+        points = len(self.p_detect) * T * (1.0 + self.clutter_rate)
+        return 40.0 * (len(self.targets) * T + propagated) + 300.0 * points
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
@@ -467,6 +487,10 @@ class CrossingConfig:
             raise FusionInputError(f"clutter_rate must give one rate per node "
                                    f"({len(self.p_detect)}, as p_detect), got "
                                    f"{len(self.clutter_rate)}")
+        # the truth and, per node, the detections and clutter of a run
+        points = self.n_steps * (len(self.p_detect) * self.n_targets + sum(self.clutter_rate))
+        _checks.fits("n_steps, n_targets and clutter_rate",
+                     48.0 * self.n_targets * self.n_steps + 300.0 * points)
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
