@@ -104,7 +104,7 @@ def associate(reports: Mapping[Hashable, Estimates], threshold: float,
     docstring); groups are ordered by their first member in the order of the reports."""
     check_threshold(threshold)
     check_method(method)
-    check_dims(dims)
+    dims = check_dims(dims)  # a list: an iterator is read once
     names, reports = _check_reports(reports)
     if not reports:
         return []

@@ -177,3 +177,9 @@ def test_coordinates_and_thresholds_at_the_ends_of_float64(method):
     for means, threshold, want in cases:
         groups = fo.associate(_reports(*means), threshold, method)
         assert [list(g.pairs) for g in groups] == want
+
+
+def test_dims_may_be_an_iterator():
+    """Regression: dims was read twice, so a generator was refused as "got []"."""
+    groups = fo.associate(_reports([[0.0, 0.0]], [[0.5, 9.0]]), 1.0, dims=(d for d in [0]))
+    assert _pairs(groups) == [[("s0", 0), ("s1", 0)]]
