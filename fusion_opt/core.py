@@ -48,7 +48,7 @@ from .prepare import ASYMMETRIC, COVS_NONFINITE, MEANS_NONFINITE, NOT_PD, SPREAD
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 from .scaling import conic_data
 from .simplex import to_simplex
-from .validation import CRITERIA, SYMMETRY_RTOL, real_array
+from .validation import CRITERIA, SYMMETRY_RTOL, real_array, symmetrised
 
 DEFAULT_BACKEND = "newton"
 # A result is OPTIMAL when its certificate proves f(w) - f* <= OPTIMAL_RTOL |f| ("trace";
@@ -408,7 +408,7 @@ def _rules(req, means, covs, k, batch):
     rules of rules.BATCHED, problem by problem for the others."""
     B, N, n = means.shape
     shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
-    scaled = np.ldexp(0.5 * (covs + np.swapaxes(covs, -1, -2)), shift)
+    scaled = np.ldexp(symmetrised(covs), shift)
     rule = rules.RULES[req.method]
     if req.method in rules.BATCHED:
         o = rule(means, scaled, req.criterion)
@@ -500,7 +500,7 @@ def _input_error(code, where, means, covs, names, batch) -> FusionInputError:
             f"exceeds {SYMMETRY_RTOL:g} x max |P| = {np.abs(P).max():.3g}")
     if code == NOT_PD:
         with np.errstate(all="ignore"):
-            eig = np.linalg.eigvalsh(0.5 * (P + P.T)).min()
+            eig = np.linalg.eigvalsh(symmetrised(P)).min()
         return FusionInputError(f"{names.of('covs', i, problem)} is not positive definite "
                                 f"(smallest eigenvalue {eig:.3g})")
     assert code == SPREAD

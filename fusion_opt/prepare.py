@@ -105,6 +105,8 @@ def scaled(P, q, shift, S) -> float:
     for j in range(n):
         for l in range(n):
             x = 0.5 * (P[j, l] + P[l, j])
+            if not np.isfinite(x):  # the sum overflowed (entries near 1.8e308)
+                x = 0.5 * P[j, l] + 0.5 * P[l, j]
             if q != 1.0:  # x / 1 is x: no division where there is no scale (BCI)
                 x /= q
             S[j, l] = x * factor if factor > 0.0 else np.ldexp(x, -shift)

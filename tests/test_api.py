@@ -139,3 +139,16 @@ def test_results_own_read_only_arrays_not_shared_with_the_next_call(backend):
         np.testing.assert_array_equal(a, before)
         with pytest.raises(ValueError):
             a[...] = 0.0
+
+
+@pytest.mark.parametrize("backend", ["newton", "clarabel"])
+def test_covariances_near_the_largest_double_fuse(backend):
+    """Regression: symmetrising (P + P^T) / 2 overflowed for entries near 1.8e308, and the
+    nodes were refused as "not positive definite (smallest eigenvalue nan)". By hand: CI
+    of 1e308 I and 0.5e308 I takes the smaller node whole; the naive fusion is 1e308 / 3."""
+    P = np.stack([1e308 * np.eye(2), 0.5e308 * np.eye(2)])
+    r = fo.bci(np.zeros((2, 2)), P, backend=backend)
+    np.testing.assert_array_equal(r.weights, [0.0, 1.0])
+    np.testing.assert_array_equal(r.cov, 0.5e308 * np.eye(2))
+    np.testing.assert_allclose(fo.fuse(np.zeros((2, 2)), P, method="naive").cov,
+                               1e308 / 3 * np.eye(2), rtol=1e-15)
