@@ -59,6 +59,8 @@ node's input unchanged. Two tests, the second only for the nodes the first canno
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .factored import (
@@ -74,7 +76,7 @@ from .factored import (
     vertex_error,
     work,
 )
-from .linalg import SMALL, apply_qt, copy, fill, inline, jit, matmul_t, small_mul_t
+from .linalg import SMALL, apply_qt, copy, fill, inline, jit, matmul_t, pow2, small_mul_t
 from .prepare import scaled
 
 _LN2 = np.log(2.0)
@@ -200,27 +202,43 @@ def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, At, Vt, R, Ri, P, B, g, trace
 
 
 @jit
-def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
-              graded: bool):
-    """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`),
-    and whose gradient g holds when graded."""
+def _fused_mean(F, means, w, Vt, Ri, rhs, mean, e: int):
+    """mean (n,) = R^-1 (Q^T b)[:n], b = [sqrt(w_i) F_i m_i 2^-e] in the row order of the QR
+    the buffers hold, times 2^e."""
     n = F.shape[1]
+    unit = pow2(-e)
     r = 0
-    for i in range(w.size):  # [sqrt(w_i) F_i m_i] in the row order of A
+    for i in range(w.size):
         if w[i] > 0.0:
             root = np.sqrt(w[i])
             for a in range(n):
                 t = 0.0
                 for c in range(a + 1):
-                    t += F[i, a, c] * means[i, c]
+                    t += F[i, a, c] * (means[i, c] * unit)
                 rhs[r + a] = root * t
             r += n
     apply_qt(Vt, n, r, rhs)
-    for a in range(n):  # mean = R^-1 (Q^T b)[:n]
+    for a in range(n):
         t = 0.0
         for c in range(a, n):
             t += Ri[a, c] * rhs[c]
-        mean[a] = t
+        mean[a] = t if e == 0 else np.ldexp(t, e)
+
+
+@jit
+def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
+              graded: bool):
+    """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`),
+    and whose gradient g holds when graded."""
+    n = F.shape[1]
+    _fused_mean(F, means, w, Vt, Ri, rhs, mean, 0)
+    if not _finite(mean):  # an intermediate overflowed (means near 1.8e308): in units of
+        e = 0              # a power of two near the largest mean, exact but for
+        for i in range(w.size):  # subnormals, which then do not matter
+            for a in range(n):
+                if w[i] > 0.0 and means[i, a] != 0.0:
+                    e = max(e, math.frexp(means[i, a])[1])
+        _fused_mean(F, means, w, Vt, Ri, rhs, mean, min(e, 1022))
     if n <= SMALL:
         small_mul_t(Ri, Ri, P)
     else:

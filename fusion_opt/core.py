@@ -44,7 +44,15 @@ from .backends import BACKENDS, EXACT, REGISTRY, newton
 from .detection import detection_split
 from .exact import fuse_exact
 from .limits import conic_bytes, limits, working_bytes
-from .prepare import ASYMMETRIC, COVS_NONFINITE, MEANS_NONFINITE, NOT_PD, SPREAD, prepare
+from .prepare import (
+    ASYMMETRIC,
+    COVS_NONFINITE,
+    MAX_CONDITION,
+    MEANS_NONFINITE,
+    NOT_PD,
+    SPREAD,
+    prepare,
+)
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 from .scaling import conic_data
 from .simplex import to_simplex
@@ -500,9 +508,15 @@ def _input_error(code, where, means, covs, names, batch) -> FusionInputError:
             f"exceeds {SYMMETRY_RTOL:g} x max |P| = {np.abs(P).max():.3g}")
     if code == NOT_PD:
         with np.errstate(all="ignore"):
-            eig = np.linalg.eigvalsh(symmetrised(P)).min()
+            eig = np.linalg.eigvalsh(symmetrised(P))
+        if eig[0] > 0.0:
+            return FusionInputError(
+                f"{names.of('covs', i, problem)} is numerically singular: eigenvalues "
+                f"{eig[0]:.3g} to {eig[-1]:.3g} (condition {eig[-1] / eig[0]:.3g}); a "
+                f"covariance is refused above a condition estimate |P|_F |P^-1|_F of "
+                f"{MAX_CONDITION:.3g}, where its Cholesky pivots are of rounding size")
         return FusionInputError(f"{names.of('covs', i, problem)} is not positive definite "
-                                f"(smallest eigenvalue {eig:.3g})")
+                                f"(smallest eigenvalue {eig[0]:.3g})")
     assert code == SPREAD
     where_b = "" if problem is None else f" of problem {b}"
     return FusionInputError(f"{names.covs}{where_b} span a ratio of scales beyond float64 "

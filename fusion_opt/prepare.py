@@ -20,12 +20,19 @@ turns it into a FusionInputError naming the argument.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .linalg import cholesky, jit, lower_inverse, pow2
 
 SYMMETRY_RTOL = 1e-8
 MAX_SPREAD_BITS = 1900
+# A covariance whose condition estimate |P|_F |P^-1|_F (>= its condition, <= n^1.5 times
+# it) is above this is refused as numerically singular: a rank-deficient covariance passes
+# a Cholesky with pivots of rounding size, 1 to 100 eps of its diagonal, and such a node
+# made the rules' inverses fail and the fused covariance singular.
+MAX_CONDITION = 2.0**46  # 7.0e13; condition 1e12 passes up to n = 16 at worst, any n typically
 
 OK, MEANS_NONFINITE, COVS_NONFINITE, ASYMMETRIC, NOT_PD, SPREAD = range(6)
 
@@ -98,9 +105,10 @@ def _check_values(means, covs, where) -> int:
 @jit
 def scaled(P, q, shift, S) -> float:
     """S = sym(P) / q * 2^-shift, the covariance a node is fused with (scaled units);
-    returns |S|_F^2."""
+    returns |S|_F, from entries scaled by a power of two near the largest (the squares of
+    1e-165 or 1e155 leave float64)."""
     n = P.shape[0]
-    norm2 = 0.0
+    top = 0.0
     factor = pow2(-shift)
     for j in range(n):
         for l in range(n):
@@ -110,8 +118,16 @@ def scaled(P, q, shift, S) -> float:
             if q != 1.0:  # x / 1 is x: no division where there is no scale (BCI)
                 x /= q
             S[j, l] = x * factor if factor > 0.0 else np.ldexp(x, -shift)
-            norm2 += S[j, l] * S[j, l]
-    return norm2
+            top = max(top, abs(S[j, l]))
+    if not 0.0 < top < np.inf:
+        return top
+    unit = pow2(min(max(-math.frexp(top)[1], -1022), 1022))  # top * unit in [2^-52, 4)
+    norm2 = 0.0
+    for j in range(n):
+        for l in range(n):
+            x = S[j, l] * unit
+            norm2 += x * x
+    return np.sqrt(norm2) / unit
 
 
 @jit
@@ -119,16 +135,19 @@ def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
     """F_out = C^-1 for C C^T = S = sym(P) / q * 2^-shift; vertex_out = (tr, log det) of S;
     returns |S|_F, or 0 when S is not positive definite."""
     n = P.shape[0]
-    norm2 = scaled(P, q, shift, S)
+    norm = scaled(P, q, shift, S)
     if not cholesky(S, C):
         return 0.0
     lower_inverse(C, F_out)
-    trace, logdet = 0.0, 0.0
+    trace, logdet, inverse2 = 0.0, 0.0, 0.0
     for j in range(n):
         trace += S[j, j]
         logdet += 2.0 * np.log(C[j, j])
         for l in range(j + 1):
             if not np.isfinite(F_out[j, l]):
                 return 0.0
+            inverse2 += F_out[j, l] * F_out[j, l]  # |P^-1|_F <= |C^-1|_F^2
+    if not norm * inverse2 <= MAX_CONDITION:
+        return 0.0
     vertex_out[0], vertex_out[1] = trace, logdet
-    return np.sqrt(norm2)
+    return norm

@@ -152,3 +152,50 @@ def test_covariances_near_the_largest_double_fuse(backend):
     np.testing.assert_array_equal(r.cov, 0.5e308 * np.eye(2))
     np.testing.assert_allclose(fo.fuse(np.zeros((2, 2)), P, method="naive").cov,
                                1e308 / 3 * np.eye(2), rtol=1e-15)
+
+
+@pytest.mark.parametrize("method", ["bci", "naive", "ei", "fast-ci", "known-cross"])
+def test_singular_covariances_are_refused_by_every_method(method):
+    """Regression: 5 ones(2, 2), singular, passed the compiled Cholesky with a pivot of
+    rounding size; the rules then raised LinAlgError and bci returned a singular fused
+    covariance. Rank-1 covariances v v^T as rounded were accepted 10 % of the time."""
+    covs = np.stack([5.0 * np.ones((2, 2)), np.eye(2)])
+    args = {"cross": np.zeros((2, 2, 2, 2))} if method == "known-cross" else {}
+    with pytest.raises(fo.FusionInputError,
+                       match=r"covs of node 0 is (not positive definite|numerically singular)"):
+        fo.fuse(np.zeros((2, 2)), covs, method, **args)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        v = rng.standard_normal((3, 1))
+        with pytest.raises(fo.FusionInputError, match="covs of node 0 is"):
+            fo.bci(np.zeros((2, 3)), np.stack([v @ v.T, np.eye(3)]))
+
+
+def test_nodes_far_apart_in_scale_fuse_exactly():
+    """Regression: a node 1e320 away from the others had its |P|_F overflow to inf (the
+    squares), which made the best-vertex rule's bound NaN: log det returned the vertex
+    [1, 0, 0], 0.45 nats above the optimum, as optimal_inaccurate; 1e-200 I beside
+    1e140 I underflowed it to 0 and was refused as not positive definite. By hand: a and b
+    mirror each other, so w = (1/2, 1/2, 0) and P = (5/8 1e160)^-1 I."""
+    a, b, c = np.diag([1.0, 4.0]) * 1e-160, np.diag([4.0, 1.0]) * 1e-160, np.eye(2) * 1e160
+    r = fo.bci(np.zeros((3, 2)), np.stack([a, b, c]), "logdet")
+    assert r.status == fo.Status.OPTIMAL
+    np.testing.assert_allclose(r.weights, [0.5, 0.5, 0.0], atol=1e-15)
+    assert r.objective == pytest.approx(2 * np.log(1.6e-160), abs=1e-12)
+    r = fo.bci(np.zeros((2, 2)), np.stack([1e-200 * np.eye(2), 1e140 * np.eye(2)]))
+    np.testing.assert_array_equal(r.cov, 1e-200 * np.eye(2))
+
+
+def test_means_near_the_largest_double_fuse():
+    """Regression: means of +-1e308 overflowed the least-squares right-hand side and the
+    fusion was refused as overflowing; the fused mean is that of means / 2^1022, times
+    2^1022 (P sum_i w_i Y_i m_i computed here in scaled units)."""
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((3, 3, 3))
+    covs = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    means = np.full((3, 3), 1e308) * np.array([1.0, -1.0, 1.0])[:, None]
+    r = fo.bci(means, covs)
+    Y = np.linalg.inv(covs)
+    info = np.einsum("i,ijk->jk", r.weights, Y)
+    ref = np.linalg.solve(info, np.einsum("i,ijk,ik->j", r.weights, Y, means / 2.0**1022))
+    np.testing.assert_allclose(r.mean, ref * 2.0**1022, rtol=1e-12)
