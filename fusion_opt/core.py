@@ -314,7 +314,7 @@ def _prepare(means, covs, q, E, a, names, batch):
 def _exact(req, means, covs, q, E, a, names, batch):
     """newton and closed-form: one compiled call; a problem whose certificate is not
     within OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
-    _check_memory(req, covs.shape[2], covs.shape[1])
+    check_memory(req, covs.shape[2], covs.shape[1])
     t0 = time.perf_counter()
     code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
                       a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
@@ -333,7 +333,7 @@ def _conic(req, means, covs, q, E, a, names, batch):
     Newton polish from its weights, and the fused estimates."""
     B, N, n = means.shape
     _prepare(means, covs, q, E, a, names, batch)
-    _check_memory(req, n, N)
+    check_memory(req, n, N)
     t0 = time.perf_counter()
     Ys, M = np.empty((B, N, n, n)), np.empty((B, n, n))
     conic_data(a.F, Ys, M)
@@ -396,7 +396,9 @@ def _ci_output(a, solve_time, polish_iters):
     return a.W, a.mean, a.cov, obj, gap, status, iters, solve_time, polish_iters, "ci_weights"
 
 
-def _check_memory(req, n, N):
+def check_memory(req, n, N):
+    """Refuses (FusionSolverError) a problem whose work arrays or conic solve would
+    exceed fusion_opt.limits."""
     if working_bytes(n, N) > limits.working_memory:
         raise FusionSolverError(req.backend, "memory_limit", _memory(
             "the native solvers' work arrays", working_bytes(n, N), n, N, "working_memory"))

@@ -73,9 +73,8 @@ def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_ar
     cross[i, j] = cov(e_i, e_j); polish=False returns a conic or SLSQP backend's weights
     unpolished. Anything else is refused by name.
     """
-    names = _PAIR if method == "ci" else core._NAMES
     req = core.request(method, criterion, backend, dict(method_args))
-    return core.run(*core.arrays(means, covs, False, names), req, False, names)
+    return core.run(*core.arrays(means, covs, False), req, False)
 
 
 def optimality_gap(covs, weights, criterion="trace") -> float:
@@ -109,6 +108,7 @@ def warmup(n: int, N: int, criterion="trace", backend=None) -> float:
     for name, value in (("n", n), ("N", N)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise FusionInputError(f"{name} must be an integer >= 1, got {value!r}")
+    core.check_memory(core.request("bci", criterion, backend, {}), n, N)  # before allocating
     t0 = time.perf_counter()
     fuse(np.zeros((N, n)), np.broadcast_to(np.eye(n), (N, n, n)), "bci", criterion, backend)
     return time.perf_counter() - t0

@@ -76,6 +76,9 @@ def real_array(x, name: str) -> np.ndarray:
     if isinstance(x, str | bytes) or isinstance(x, Mapping):
         raise FusionInputError(f"{name} must be an array of real numbers, got "
                                f"{type(x).__name__}")
+    if isinstance(x, np.ma.MaskedArray):  # asarray would drop the mask, using hidden values
+        raise FusionInputError(f"{name} is a masked array: fill or drop its masked values "
+                               "first (np.ma.filled, or select the rows to keep)")
     try:
         a = np.asarray(x)
     except (TypeError, ValueError) as exc:
@@ -84,7 +87,15 @@ def real_array(x, name: str) -> np.ndarray:
         kind = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes",
                 "O": "objects (ragged or not numbers)"}.get(a.dtype.kind, str(a.dtype))
         raise FusionInputError(f"{name} must be an array of real numbers, got {kind}")
-    return a.astype(float, copy=False)
+    with np.errstate(over="ignore", under="ignore"):
+        out = a.astype(float, copy=False)
+    if a.dtype.itemsize > 8 and a.dtype.kind == "f":  # long double: beyond float64?
+        lost = (np.isinf(out) & np.isfinite(a)) | ((out == 0) & (a != 0))
+        if lost.any():
+            idx = tuple(int(i) for i in np.argwhere(lost)[0])
+            raise FusionInputError(f"{name} has a value beyond float64's range, {a[idx]!s} "
+                                   f"at index {idx}")
+    return out
 
 
 def finite_array(x, name: str) -> np.ndarray:

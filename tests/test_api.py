@@ -199,3 +199,28 @@ def test_means_near_the_largest_double_fuse():
     info = np.einsum("i,ijk->jk", r.weights, Y)
     ref = np.linalg.solve(info, np.einsum("i,ijk,ik->j", r.weights, Y, means / 2.0**1022))
     np.testing.assert_allclose(r.mean, ref * 2.0**1022, rtol=1e-12)
+
+
+def test_masked_long_double_and_pair_names():
+    """Regression: a masked array's hidden values were fused; a long double beyond
+    float64 became 0 or inf and was refused as "not positive definite" or "non-finite";
+    fuse(method="ci") named m_a and P_b, which its caller never passed."""
+    eye2 = np.stack([np.eye(2)] * 2)
+    masked = np.ma.masked_array([[1e6, 0.0], [1.0, 1.0]], mask=[[1, 0], [0, 0]])
+    with pytest.raises(fo.FusionInputError, match="means is a masked array"):
+        fo.fuse(masked, eye2, "naive")
+    for scale, shown in (("1e-4000", "1e-4000"), ("1e4000", "1e[+]4000")):
+        with pytest.raises(fo.FusionInputError, match=f"beyond float64's range, {shown} at"):
+            fo.bci(np.zeros((2, 2)), eye2.astype(np.longdouble) * np.longdouble(scale))
+    r = fo.bci(np.zeros((2, 2)), eye2.astype(np.longdouble) * np.longdouble("1e-310"))
+    np.testing.assert_array_equal(r.cov, 1e-310 * np.eye(2))
+    with pytest.raises(fo.FusionInputError, match=r"^covs shape \(2, 2, 2\) does not match "
+                                                  r"means shape \(3, 2\)$"):
+        fo.fuse(np.zeros((3, 2)), eye2, "ci")
+
+
+def test_warmup_checks_the_memory_limit_before_allocating():
+    """Regression: warmup(100000, 3) allocated a 75 GiB identity first (MemoryError)."""
+    for n, N in ((100000, 3), (2, 10**9)):
+        with pytest.raises(fo.FusionSolverError, match="memory_limit"):
+            fo.warmup(n, N)
