@@ -399,9 +399,10 @@ def _ci_output(a, solve_time, polish_iters):
 def check_memory(req, n, N):
     """Refuses (FusionSolverError) a problem whose work arrays or conic solve would
     exceed fusion_opt.limits."""
-    if working_bytes(n, N) > limits.working_memory:
+    need = working_bytes(n, N, req.backend)
+    if need > limits.working_memory:
         raise FusionSolverError(req.backend, "memory_limit", _memory(
-            "the native solvers' work arrays", working_bytes(n, N), n, N, "working_memory"))
+            "the weight solver's work arrays", need, n, N, "working_memory"))
     if req.backend in _CONIC and conic_bytes(n, N) > limits.conic_memory:
         raise FusionSolverError(req.backend, "memory_limit", _memory(
             "Clarabel's KKT system", conic_bytes(n, N), n, N, "conic_memory"))

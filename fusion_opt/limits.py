@@ -7,11 +7,14 @@ interpreter, uncatchably, when its KKT system does not fit).
 
 conic_memory: the estimated memory of a conic solve by "clarabel" / "clarabel-direct",
     whose positive semidefinite cone of order 2n makes a dense block of
-    (n (2n + 1))^2 entries in the KKT system, counted twice for its factorisation
-    (about 1 GB at n = 64, 100 GB at n = 200).
+    (n (2n + 1))^2 entries in the KKT system, counted four times (the system, its
+    factorisation and their copies: a fuzz measured peak resident memory of 2.5 GB at
+    n = 64 and 5.5 GB at n = 80, whole process, where twice the block estimated 1.1 and
+    2.7 GB and let n = 90, 8.5 GB, pass the default limit); 2.2 GB at n = 64.
 working_memory: the estimated memory of the native solvers' work arrays for one problem:
     the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles, and five
-    stacks of N n x n matrices (factors, their QR, a subproblem's factors).
+    stacks of N n x n matrices (factors, their QR, a subproblem's factors); for "slsqp"
+    also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB).
 array_memory: the estimated memory of the arrays a tracker (its particles and a step's
     temporaries) or a scenario simulator (a run's truth and measurements) allocates,
     checked when it is configured.
@@ -44,9 +47,11 @@ limits = Limits()
 def conic_bytes(n: int, N: int) -> float:
     """Estimated bytes of a Clarabel solve for state dimension n and N nodes."""
     psd = n * (2 * n + 1)
-    return 8.0 * (2.0 * psd * psd + 4.0 * N * psd)
+    return 8.0 * (4.0 * psd * psd + 4.0 * N * psd)
 
 
-def working_bytes(n: int, N: int) -> float:
-    """Estimated bytes of the native solvers' work arrays for one problem."""
-    return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n)
+def working_bytes(n: int, N: int, backend: str | None = None) -> float:
+    """Estimated bytes of the native solvers' work arrays for one problem, and of SLSQP's
+    workspace for backend "slsqp"."""
+    slsqp = 10.0 * (N + 1) ** 2 if backend == "slsqp" else 0.0
+    return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n + slsqp)

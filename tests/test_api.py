@@ -224,3 +224,13 @@ def test_warmup_checks_the_memory_limit_before_allocating():
     for n, N in ((100000, 3), (2, 10**9)):
         with pytest.raises(fo.FusionSolverError, match="memory_limit"):
             fo.warmup(n, N)
+
+
+def test_slsqp_and_clarabel_beyond_memory_are_refused_before_solving():
+    """Regression: SLSQP at N = 20000 raised scipy's MemoryError for 31 GiB; Clarabel's
+    estimate, half the measured peak, let n = 90 (about 8.5 GB) pass the 4 GiB limit."""
+    covs = np.broadcast_to(np.eye(2), (20000, 2, 2))
+    with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*N = 20000"):
+        fo.bci(np.zeros((20000, 2)), covs, backend="slsqp")
+    with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*n = 90.*conic_memory"):
+        fo.bci(np.zeros((2, 90)), np.stack([np.eye(90)] * 2), backend="clarabel")
