@@ -59,6 +59,7 @@ GROUPS = {"paper": ("table1", "table2")}
 # study -> (the package it needs beyond the base install, the extra that installs it)
 NEEDS = {"stonesoup": ("stonesoup", "stonesoup")}
 STORE, META, REPORT = "runs.sqlite", "meta.json", "report.json"
+MAX_WORKERS = 256  # local processes; a pool never has more than the runs left to do
 
 
 def _module(name: str):
@@ -99,7 +100,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--quick", action="store_true",
                      help="the config's [quick] settings: few runs, for a first look")
     run.add_argument("--workers", type=int, default=None,
-                     help="local processes, >= 1 (1 = serial; default: all cores)")
+                     help=f"local processes, 1 to {MAX_WORKERS} and at most one per run "
+                     "left to do (1 = serial; default: all cores)")
     run.add_argument("--scheduler", metavar="ADDRESS",
                      help="run on a Dask cluster at ADDRESS (needs the dask extra)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -138,8 +140,9 @@ def _config(name: str, args) -> dict:
 
 
 def _run(args) -> None:
-    if args.workers is not None and args.workers < 1:
-        raise configs.ConfigError(f"--workers must be an integer >= 1, got {args.workers}")
+    if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
+        raise configs.ConfigError(f"--workers must be an integer from 1 to {MAX_WORKERS}, "
+                                  f"got {args.workers}")
     names = GROUPS.get(args.name, (args.name,))
     config = {name: _config(name, args) for name in names}
     for name in names:  # a store that would refuse its config, before anything runs

@@ -55,14 +55,15 @@ def timed_run(run_one: Callable, config: dict, index: int, seed) -> tuple:
 
 def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
             scheduler: str | None = None, progress: bool = True, label: str = "study") -> int:
-    """Run every run of config["runs"] not yet in store; returns how many ran now."""
+    """Run every run of config["runs"] not yet in store, in a pool of at most `workers`
+    processes and one per run to do; returns how many ran now."""
     runs, done = config["runs"], store.done()
     todo = [i for i in range(runs) if i not in done]
     all_seeds = seeds(config["seed"], runs)
     jobs = [(i, all_seeds[i]) for i in todo]
     bar = tqdm(total=runs, initial=runs - len(todo), unit="run", disable=not progress,
                file=sys.stderr, desc=label)
-    executor = _executor(workers, scheduler) if jobs else _Serial()
+    executor = _executor(min(workers, len(jobs)), scheduler) if jobs else _Serial()
     try:
         for finished in executor.results(run_one, config, jobs):
             with _sigint_deferred():  # a run that has arrived is stored whole

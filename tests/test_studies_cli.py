@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from studies import table1
+from studies import runner, table1
 from studies.__main__ import GROUPS, STUDIES, main
 
 # 40 steps, 5 particles and the exact "newton" backend: a run takes about 0.05 s.
@@ -106,6 +106,14 @@ def test_same_seed_same_table_whatever_the_executor(tiny, tmp_path):
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
     assert _run(tiny, tmp_path / "p", "--workers", "2") == serial
     assert _run(tiny, tmp_path / "o", "--workers", "1", "--seed", "7") != serial
+
+
+def test_a_pool_never_has_more_workers_than_runs_to_do(tiny, tmp_path, monkeypatch):
+    started = []
+    monkeypatch.setattr(runner, "_Pool", lambda workers: started.append(workers)
+                        or runner._Serial())
+    _run(tiny, tmp_path, "--workers", "256")
+    assert started == [3]
 
 
 def test_dask_local_cluster_gives_identical_results(tiny, tmp_path):

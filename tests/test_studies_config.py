@@ -115,8 +115,10 @@ def test_a_bad_configuration_is_refused_before_anything_is_created(tmp_path, cap
 
 
 @pytest.mark.parametrize("flags,message", [
-    (["--workers", "0"], "--workers must be an integer >= 1, got 0"),
-    (["--workers", "-2"], "--workers must be an integer >= 1, got -2"),
+    (["--workers", "0"], "--workers must be an integer from 1 to 256, got 0"),
+    (["--workers", "-2"], "--workers must be an integer from 1 to 256, got -2"),
+    (["--workers", "1000000"], "--workers must be an integer from 1 to 256, got 1000000"),
+    (["--workers", "99999999999999999999999"], "from 1 to 256, got 99999999999999999999999"),
     (["--runs", "0"], "runs must be an integer >= 1, got 0"),
     (["--seed", "-1"], "seed must be an integer >= 0, got -1"),
 ])
