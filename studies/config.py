@@ -192,9 +192,12 @@ def items(where: str, value, length: int | None = None) -> list:
     return list(value)
 
 
+MAX_RUNS = 10_000  # the bootstrap of a table cell draws 2000 x runs indices
+
+
 def run_fields(config: dict) -> None:
-    """runs a positive integer, seed a non-negative integer."""
-    integer("runs", config.get("runs"), low=1)
+    """runs an integer in [1, MAX_RUNS], seed a non-negative integer."""
+    integer("runs", config.get("runs"), low=1, high=MAX_RUNS)
     integer("seed", config.get("seed"), low=0)
 
 

@@ -39,8 +39,11 @@ class RunError(RuntimeError):
     """A run raised an exception; names the run and the exception."""
 
 
-def seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
-    return np.random.SeedSequence(seed).spawn(runs)
+def seed_of(seed: int, index: int) -> np.random.SeedSequence:
+    """Run `index`'s SeedSequence(seed).spawn(runs)[index], made alone (the same entropy
+    and spawn key, so the same streams: tested), so that no list of every run's seed is
+    built."""
+    return np.random.SeedSequence(seed, spawn_key=(index,))
 
 
 def timed_run(run_one: Callable, config: dict, index: int, seed) -> tuple:
@@ -58,10 +61,8 @@ def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
     """Run every run of config["runs"] not yet in store, in a pool of at most `workers`
     processes and one per run to do; returns how many ran now."""
     runs, done = config["runs"], store.done()
-    todo = [i for i in range(runs) if i not in done]
-    all_seeds = seeds(config["seed"], runs)
-    jobs = [(i, all_seeds[i]) for i in todo]
-    bar = tqdm(total=runs, initial=runs - len(todo), unit="run", disable=not progress,
+    jobs = [(i, seed_of(config["seed"], i)) for i in range(runs) if i not in done]
+    bar = tqdm(total=runs, initial=runs - len(jobs), unit="run", disable=not progress,
                file=sys.stderr, desc=label)
     executor = _executor(min(workers, len(jobs)), scheduler) if jobs else _Serial()
     try:
@@ -78,7 +79,7 @@ def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
     finally:
         executor.close()
         bar.close()
-    return len(todo)
+    return len(jobs)
 
 
 @contextlib.contextmanager

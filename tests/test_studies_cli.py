@@ -7,6 +7,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from studies import runner, table1
@@ -106,6 +107,18 @@ def test_same_seed_same_table_whatever_the_executor(tiny, tmp_path):
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
     assert _run(tiny, tmp_path / "p", "--workers", "2") == serial
     assert _run(tiny, tmp_path / "o", "--workers", "1", "--seed", "7") != serial
+
+
+@pytest.mark.parametrize("seed", [0, 20180401, 2**70])
+def test_a_run_seed_made_alone_is_the_spawned_one(seed):
+    """runner.seed_of(seed, i) gives the streams of SeedSequence(seed).spawn(runs)[i],
+    and so do the children a run spawns from it."""
+    spawned = np.random.SeedSequence(seed).spawn(9)
+    for i in (0, 4, 8):
+        alone = runner.seed_of(seed, i)
+        assert alone.generate_state(8).tolist() == spawned[i].generate_state(8).tolist()
+        assert ([c.generate_state(4).tolist() for c in alone.spawn(3)]
+                == [c.generate_state(4).tolist() for c in spawned[i].spawn(3)])
 
 
 def test_a_pool_never_has_more_workers_than_runs_to_do(tiny, tmp_path, monkeypatch):

@@ -19,7 +19,7 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[fusion]\nchi = 2.0\n", "[fusion] has unknown field(s) ['chi']"),
     ("table1", "[scenario]\ndt = nan\n", "scenario.dt must be a finite number, got nan"),
     ("table1", "[scenario]\nr = inf\n", "scenario.r must be a finite number, got inf"),
-    ("table1", "runs = -3\n", "runs must be an integer >= 1, got -3"),
+    ("table1", "runs = -3\n", "runs must be an integer >= 1 and <= 10000, got -3"),
     ("table1", "fusion = 3\n", "[fusion] must be a table, got 3"),
     ("table1", "[fusion]\nwindow = [15.0, 13.0]\n", "fusion.window must be [start, end]"),
     ("table1", "[fusion]\nwindow = [15.0]\n", "fusion.window must be a list of 2 values"),
@@ -31,8 +31,9 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[scenario]\ndt = -1.0\n", "dt must be a finite positive number"),
     ("table1", "[scenario]\ntruth_process_noise = 1\n", "must be true or false"),
     ("table1", "runz = 5\n", "unknown field(s) ['runz']"),
-    ("table1", "runs = 0\n", "runs must be an integer >= 1, got 0"),
-    ("table1", 'runs = "5"\n', "runs must be an integer >= 1, got '5'"),
+    ("table1", "runs = 10000000000000\n", "runs must be an integer >= 1 and <= 10000, got 1"),
+    ("table1", "runs = 0\n", "runs must be an integer >= 1 and <= 10000, got 0"),
+    ("table1", 'runs = "5"\n', "runs must be an integer >= 1 and <= 10000, got '5'"),
     ("table1", "seed = -1\n", "seed must be an integer >= 0, got -1"),
     ("table1", "[check]\nsteps = -1\n", "check.steps must be an integer >= 0, got -1"),
     ("table1", '[check]\nbackend = "gurobi"\n', "check.backend must be one of ['newton'"),
@@ -68,7 +69,7 @@ CASES = [  # (study, TOML file, what the one line must say)
      "number >= 1"),
     ("nnode", "[static]\nchi_inv_true = 1.5\n", "(chi_inv_true is now growth_true"),
     ("nnode", "[static]\nrho = nan\n", "static.rho must be a finite number >= 0 and <= 1"),
-    ("nnode", "runs = -1\n", "runs must be an integer >= 1, got -1"),
+    ("nnode", "runs = -1\n", "runs must be an integer >= 1 and <= 10000, got -1"),
     ("nnode", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("nnode", "[dynamic]\nburn_in = 500\n", "dynamic.burn_in must be below dynamic.steps"),
     ("nnode", '[scaling]\nbackends = ["gurobi"]\n', "scaling.backends[0] must be one of"),
@@ -119,7 +120,8 @@ def test_a_bad_configuration_is_refused_before_anything_is_created(tmp_path, cap
     (["--workers", "-2"], "--workers must be an integer from 1 to 256, got -2"),
     (["--workers", "1000000"], "--workers must be an integer from 1 to 256, got 1000000"),
     (["--workers", "99999999999999999999999"], "from 1 to 256, got 99999999999999999999999"),
-    (["--runs", "0"], "runs must be an integer >= 1, got 0"),
+    (["--runs", "0"], "runs must be an integer >= 1 and <= 10000, got 0"),
+    (["--runs", "100000000000"], "runs must be an integer >= 1 and <= 10000, got 1000000"),
     (["--seed", "-1"], "seed must be an integer >= 0, got -1"),
 ])
 def test_bad_flags_are_refused_before_anything_is_created(tmp_path, capsys, flags, message):
@@ -189,7 +191,7 @@ def test_the_growth_reaches_the_fusion():
     config = configs.load("table1")
     config["scenario"] |= {"n_steps": 30, "n_particles": 3}
     config["check"]["steps"] = 0
-    seed = runner.seeds(1, 1)[0]
+    seed = runner.seed_of(1, 0)
     for growth, same in ((1.0, True), (1.025, False)):
         config["fusion"]["growth"] = growth
         result, _ = table1.run_one(config, 1, seed)
