@@ -27,6 +27,7 @@ from importlib import resources
 from pathlib import Path
 
 import fusion_opt as fo
+from fusion_opt.limits import conic_bytes, working_bytes
 
 
 class ConfigError(ValueError):
@@ -263,6 +264,35 @@ def _tuples(x):
     if isinstance(x, list):
         return tuple(_tuples(v) for v in x)
     return x
+
+
+def fits(where: str, n_bytes: float, limit: str = "array_memory") -> None:
+    """Refuse sizes (named by where) whose arrays take about n_bytes, over the limit of
+    fusion_opt.limits of that name: checked before a run allocates them."""
+    cap = getattr(fo.limits, limit)
+    if n_bytes > cap:
+        raise ConfigError(f"{where}: about {n_bytes / 2**30:.3g} GiB of arrays, over the "
+                          f"limit of {cap / 2**30:.3g} GiB (fusion_opt.limits.{limit})")
+
+
+CONIC = ("clarabel", "clarabel-direct")  # the backends fusion_opt limits by conic_memory
+
+
+def fusion_fits(where: str, n: int, N: int, backend: str) -> None:
+    """Refuse a fusion of N estimates of dimension n by backend that fusion_opt would
+    refuse for its memory (fusion_opt.limits), before any run starts."""
+    fits(where, working_bytes(n, N), "working_memory")
+    if backend in CONIC:
+        fits(where, conic_bytes(n, N), "conic_memory")
+
+
+def construct(section: str, make, *args, **kwargs):
+    """make(*args, **kwargs) (a tracker, as a run builds it: its own checks of sizes and
+    settings), a refusal (ValueError) becoming a ConfigError naming the section."""
+    try:
+        return make(*args, **kwargs)
+    except ValueError as exc:
+        raise ConfigError(f"[{section}] {exc}") from None
 
 
 def backend(where: str, value, nodes: int) -> str:

@@ -152,6 +152,7 @@ def check(config: dict) -> None:
     if tr["birth_prob"] == 0 and tr["clutter_prior"] == 0:
         raise configs.ConfigError("tracker.birth_prob and tracker.clutter_prior must not "
                                   "both be 0: nothing could explain a measurement")
+    configs.construct("tracker", monitoring_node, config, sc, 1, np.random.default_rng(0))
     width = _check_network(config["network"], len(sc.p_detect))
     configs.backend("backend", config["backend"], nodes=width)
     _check_rules(config["rules"])
@@ -162,6 +163,11 @@ def check(config: dict) -> None:
     bm = configs.table(config["benchmark"], "benchmark", BENCHMARK)
     configs.backend("benchmark.backend", bm["backend"],
                     nodes=max(bm["sources"] + [bm["sources_at_targets"]]))
+    for where, S, J in (("benchmark.sources and targets_at_sources", max(bm["sources"]),
+                         bm["targets_at_sources"]),
+                        ("benchmark.sources_at_targets and targets", bm["sources_at_targets"],
+                         max(bm["targets"]))):
+        configs.fits(where, 8.0 * 64 * S * J)  # synthetic_scene: G and covs (S, J, 4, 4)
 
 
 def _check_network(net, monitors: int) -> int:
@@ -225,12 +231,8 @@ def monitor_name(k: int) -> str:
 def build_network(config: dict, rngs) -> fo.Network:
     """RBMCDA trackers "RBMCDA k" (k = 1..len(rngs), each with its generator) and, per
     rule R of [rules], the processing nodes "R NAME" of both levels."""
-    sc, tr = scenario(config), config["tracker"]
-    model = sc.filter_model()
-    P0 = np.diag([tr["prior_pos_var"]] * 2 + [tr["prior_vel_var"]] * 2)
-    settings = {k: v for k, v in tr.items() if k not in ("prior_pos_var", "prior_vel_var")}
-    trackers = {monitor_name(k): rbmcda.RBMCDA(model, np.zeros(4), P0, rng=rng, dt=sc.dt,
-                                               name=monitor_name(k), **settings)
+    sc = scenario(config)
+    trackers = {monitor_name(k): monitoring_node(config, sc, k, rng)
                 for k, rng in enumerate(rngs, start=1)}
     processing = {}
     for rule, spec in config["rules"].items():
@@ -242,6 +244,16 @@ def build_network(config: dict, rngs) -> fo.Network:
                 min_sources=config["network"]["min_sources"][level],
                 memory=config["network"]["memory"])
     return fo.Network(trackers, processing)
+
+
+def monitoring_node(config: dict, sc: CrossingConfig, k: int, rng) -> rbmcda.RBMCDA:
+    """Monitoring node k: RBMCDA with the settings of [tracker] (the check makes one: it
+    refuses sizes and settings before any run)."""
+    tr = config["tracker"]
+    P0 = np.diag([tr["prior_pos_var"]] * 2 + [tr["prior_vel_var"]] * 2)
+    settings = {key: v for key, v in tr.items() if key not in ("prior_pos_var", "prior_vel_var")}
+    return rbmcda.RBMCDA(sc.filter_model(), np.zeros(4), P0, rng=rng, dt=sc.dt,
+                         name=monitor_name(k), **settings)
 
 
 def _levels(config: dict, rule: str) -> dict:

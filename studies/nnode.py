@@ -96,30 +96,66 @@ def check(config: dict) -> None:
     configs.fields(config, "", ("runs", "seed", "backend", "static", "sweeps", "dynamic",
                                 "scaling"))
     configs.run_fields(config)
-    configs.table(config["static"], "static", STATIC)
+    static = configs.table(config["static"], "static", STATIC)
+    backend = configs.choice("backend", config["backend"], fo.BACKENDS)
+    _static_fits("static.n, static.N and static.draws", static, backend)
     sweeps = config["sweeps"]
     if not isinstance(sweeps, dict) or "N" not in sweeps:
         raise configs.ConfigError("[sweeps] must be a table with a sweep over N (the figures "
                                   f"plot it), got {sweeps!r}")
-    nodes = [config["static"]["N"]]
+    nodes = [static["N"]]
     for name, spec in sweeps.items():
-        nodes += _check_sweep(config["static"], name, spec)
+        nodes += _check_sweep(static, name, spec, backend)
     dyn = configs.table(config["dynamic"], "dynamic", DYNAMIC)
     if dyn["burn_in"] >= dyn["steps"]:
         raise configs.ConfigError(f"dynamic.burn_in must be below dynamic.steps "
                                   f"({dyn['steps']}), got {dyn['burn_in']}")
-    configs.backend("backend", config["backend"], nodes=max(nodes + list(dyn["N"])))
-    sc = configs.fields(config["scaling"], "scaling", ("N", "n", "backends", "repeats"))
-    sizes = {key: [configs.integer(f"scaling.{key}[{i}]", v, low=low) for i, v in
-                   enumerate(configs.items(f"scaling.{key}", sc[key]))]
-             for key, low in (("N", 2), ("n", 1))}
+    for i, N in enumerate(dyn["N"]):
+        _dynamic_fits(f"dynamic.N[{i}] = {N} with dynamic.steps = {dyn['steps']}", dyn, N,
+                      backend)
+    configs.backend("backend", backend, nodes=max(nodes + list(dyn["N"])))
+    _check_scaling(config["scaling"])
+
+
+def _check_scaling(sc) -> None:
+    """[scaling]: sizes whose fusions are within fusion_opt.limits for every backend."""
+    configs.fields(sc, "scaling", ("N", "n", "backends", "repeats"))
+    sizes = {}
+    for key, low in (("N", 2), ("n", 1)):
+        values = configs.items(f"scaling.{key}", sc[key])
+        sizes[key] = [configs.integer(f"scaling.{key}[{i}]", v, low=low)
+                      for i, v in enumerate(values)]
     for i, b in enumerate(configs.items("scaling.backends", sc["backends"])):
         configs.backend(f"scaling.backends[{i}]", b, nodes=max(sizes["N"] + [8]))
+        for key, shapes in (("N", [(4, N) for N in sizes["N"]]),
+                            ("n", [(n, 8) for n in sizes["n"]])):
+            for j, (n, N) in enumerate(shapes):
+                configs.fusion_fits(f"scaling.{key}[{j}] with {b}", n, N, b)
     configs.integer("scaling.repeats", sc["repeats"], low=1)
 
 
-def _check_sweep(static: dict, name: str, spec) -> list[int]:
-    """Check one sweep (either form of sweep_spec); returns the node counts it uses."""
+def _static_fits(where: str, cfg: dict, backend: str) -> None:
+    """Refuse a static case (cfg a [static] table) beyond fusion_opt.limits: its arrays
+    (static_scores: the joint covariance (N n, N n) about four times over, the error
+    draws (draws, N + 1, n) four times, the reported covariance per draw (draws, n, n))
+    and its fusions."""
+    N, n, draws = cfg["N"], cfg["n"], cfg["draws"]
+    configs.fits(where, 8.0 * (4 * (N * n) ** 2 + 4 * draws * (N + 1) * n + draws * n * n))
+    configs.fusion_fits(where, n, N, backend)
+
+
+def _dynamic_fits(where: str, dyn: dict, N: int, backend: str) -> None:
+    """Refuse a dynamic case of N nodes beyond fusion_opt.limits: the cross-covariances
+    kept per step after burn-in (N, N, 4, 4), twice, and the scans (about 50 words per
+    node and step), and its fusions of N estimates."""
+    steps = dyn["steps"]
+    configs.fits(where, 8.0 * (32 * N * N * (steps - dyn["burn_in"]) + 50 * N * steps))
+    configs.fusion_fits(where, 4, N, backend)
+
+
+def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
+    """Check one sweep (either form of sweep_spec), each of its cases within
+    fusion_opt.limits; returns the node counts it uses."""
     where = f"sweeps.{name}"
     if isinstance(spec, dict):
         configs.fields(spec, where, ("field", "values"), ("fixed",))
@@ -133,6 +169,7 @@ def _check_sweep(static: dict, name: str, spec) -> list[int]:
     field, values, fixed = sweep_spec(name, spec)
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)
+        _static_fits(f"{where}[{i}] = {v}", static | fixed | {field: v}, backend)
     return [(static | fixed | {field: v})["N"] for v in values]
 
 

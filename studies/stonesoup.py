@@ -200,6 +200,10 @@ def check(config: dict) -> None:
                                 "metrics", "figure"))
     configs.run_fields(config)
     sc = scenario(config)
+    points = sum(sc.clutter_rate) + sc.sensors * len(sc.targets)  # detections per scan
+    # one scan's Stone Soup detections (about 2 KB each) and every scan's positions kept
+    configs.fits("scenario.clutter_rate and steps",
+                 2048.0 * points + 16.0 * 4 * sc.steps * points)
     configs.backend("backend", config["backend"], nodes=sc.sensors)
     _check_rules(config["rules"], sensor_names(sc))
     fusion = configs.fields(config["fusion"], "fusion", ("association", "threshold",

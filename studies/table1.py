@@ -44,12 +44,14 @@ def check(config: dict) -> None:
     configs.fields(config, "", ("runs", "seed", "backend", "scenario", "fusion", "check"))
     configs.run_fields(config)
     configs.backend("backend", config["backend"], nodes=2)
-    check = configs.fields(config["check"], "check", ("backend", "steps"))
-    configs.backend("check.backend", check["backend"], nodes=2)
-    configs.integer("check.steps", check["steps"], low=0)
-    if len(scenario(config).p_detect) != 2:
+    sc = scenario(config)
+    if len(sc.p_detect) != 2:
         raise configs.ConfigError("scenario.p_detect must hold 2 detection probabilities "
                                   f"(nodes a and b), got {config['scenario']['p_detect']!r}")
+    configs.construct("scenario", _filter, sc, np.random.default_rng(0))
+    check = configs.fields(config["check"], "check", ("backend", "steps"))
+    configs.backend("check.backend", check["backend"], nodes=2)
+    configs.integer("check.steps", check["steps"], low=0, high=sc.n_steps)  # steps of a run
     fusion = configs.fields(config["fusion"], "fusion", ("growth", "window"))
     configs.growth("fusion.growth", fusion["growth"])
     start, end = (configs.number(f"fusion.window[{i}]", t) for i, t in
@@ -69,13 +71,23 @@ def estimates(config: dict, seed: np.random.SeedSequence):
     out = {}
     for name, node, frng in zip("ab", data.nodes, filter_rngs, strict=True):
         kf = kalman.run(node.scans, model, m0, P0)
-        pf = rbpf.run(node.scans, model, m0, P0, rng=frng, n_particles=sc.n_particles,
-                      clutter_prior=sc.clutter_prior, clutter_density=sc.clutter_density,
-                      resample_threshold=sc.resample_threshold)
+        pf = rbpf.run(node.scans, model, m0, P0, rng=frng, **_filter_settings(sc))
         out[f"KF {name}"] = (kf.means, kf.covs)
         out[f"RBPF {name}"] = (pf.means, pf.covs)
     fused, check = _fused(config, sc, out["RBPF a"], out["RBPF b"])
     return data, out | fused, check
+
+
+def _filter_settings(sc: Table1Config) -> dict:
+    """The RBPF's settings of [scenario]."""
+    return dict(n_particles=sc.n_particles, clutter_prior=sc.clutter_prior,
+                clutter_density=sc.clutter_density, resample_threshold=sc.resample_threshold)
+
+
+def _filter(sc: Table1Config, rng) -> rbpf.RBPF:
+    """A node's RBPF as a run makes it (the check makes one: it refuses sizes and
+    settings before any run)."""
+    return rbpf.RBPF(sc.filter_model(), *sc.prior(), rng=rng, **_filter_settings(sc))
 
 
 def _fused(config, sc, a, b) -> tuple[dict, dict]:

@@ -60,7 +60,9 @@ def check(config: dict) -> None:
     configs.fields(config, "", ("runs", "seed", "backend", "scenario", "network", "fusion",
                                 "metrics"))
     configs.run_fields(config)
-    nodes = len(scenario(config).p_detect)
+    sc = scenario(config)
+    nodes = len(sc.p_detect)
+    configs.construct("scenario", _monitoring, sc, [np.random.default_rng(0)])
     net = configs.fields(config["network"], "network", ("neighbours", "association", "threshold"))
     neighbours = configs.sources(  # processing node name -> its monitoring nodes
         net["neighbours"], "network.neighbours",
