@@ -118,13 +118,17 @@ def check(config: dict) -> None:
 
 
 def _check_scaling(sc) -> None:
-    """[scaling]: sizes whose fusions are within fusion_opt.limits for every backend."""
+    """[scaling]: two or more distinct sizes per axis (a log-log slope needs two), each
+    fusion within fusion_opt.limits for every backend."""
     configs.fields(sc, "scaling", ("N", "n", "backends", "repeats"))
     sizes = {}
     for key, low in (("N", 2), ("n", 1)):
         values = configs.items(f"scaling.{key}", sc[key])
         sizes[key] = [configs.integer(f"scaling.{key}[{i}]", v, low=low)
                       for i, v in enumerate(values)]
+        if len(set(values)) < 2:
+            raise configs.ConfigError(f"scaling.{key} must hold two or more distinct sizes "
+                                      f"(the log-log slope is fitted to them), got {values!r}")
     for i, b in enumerate(configs.items("scaling.backends", sc["backends"])):
         configs.backend(f"scaling.backends[{i}]", b, nodes=max(sizes["N"] + [8]))
         for key, shapes in (("N", [(4, N) for N in sizes["N"]]),
@@ -446,11 +450,23 @@ def _time_solve(backend: str, n: int, N: int, repeats: int, rng) -> float:
     return float(np.median(times))
 
 
-def slope(xs, ys) -> float:
-    """Least-squares slope of log(y) against log(x), over the points that are not NaN."""
+def slope(xs, ys) -> float | None:
+    """Least-squares slope of log(y) against log(x), over the points that are not NaN (a
+    solve that failed); None without two such points of distinct x."""
     x, y = np.asarray(xs, float), np.asarray(ys, float)
     ok = np.isfinite(y)
-    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0]) if ok.sum() >= 2 else np.nan
+    if len(set(x[ok])) < 2:
+        return None
+    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0])
+
+
+def _finite(x: float) -> float | None:
+    """x, or None (an empty CSV cell, "-" in a table) for the NaN of a failed solve."""
+    return x if x is not None and np.isfinite(x) else None
+
+
+def _cell(x: float | None, spec: str) -> str:
+    return "-" if _finite(x) is None else format(x, spec)
 
 
 # ---------------------------------------------------------------------------- report
@@ -499,7 +515,7 @@ def _csv_tables(config, results, out: Path) -> None:
     sc = _scaling(out)
     if sc is not None:
         stats.write_rows(out / "nnode_scaling.csv", [
-            {"axis": axis, "backend": b, "size": k, "median_s": t,
+            {"axis": axis, "backend": b, "size": k, "median_s": _finite(t),
              "loglog_slope": slope([float(k) for k in times], list(times.values()))}
             for axis in ("vs_N", "vs_n") for b, times in sc[axis].items()
             for k, t in times.items()])
@@ -580,15 +596,16 @@ def _scaling_table(out: Path) -> list[str]:
     sc = _scaling(out)
     if sc is None:
         return ["## Scaling", "", "not measured (run the study to measure it)", ""]
-    lines = ["## Scaling: median time per BCI solve (ms), trace criterion", ""]
+    lines = ["## Scaling: median time per BCI solve (ms), trace criterion ('-': the "
+             "backend failed)", ""]
     for axis, label in (("vs_N", "N (n = 4)"), ("vs_n", "n (N = 8)")):
         keys = list(next(iter(sc[axis].values())))
         lines += ["| backend | " + " | ".join(f"{label.split()[0]} = {k}" for k in keys)
                   + " | log-log slope |", "|---" * (len(keys) + 2) + "|"]
         for backend, times in sc[axis].items():
             s = slope([float(k) for k in times], list(times.values()))
-            lines.append(f"| {backend} | " + " | ".join(f"{1e3 * t:.3g}" for t in
-                                                       times.values()) + f" | {s:.2f} |")
+            cells = [_cell(1e3 * t, ".3g") for t in times.values()] + [_cell(s, ".2f")]
+            lines.append(f"| {backend} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines
 

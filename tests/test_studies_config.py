@@ -102,6 +102,9 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[dynamic]\nN = [2, 100000]\n",
      "dynamic.N[1] = 100000 with dynamic.steps = 200: about"),
     ("nnode", "[scaling]\nn = [2, 200]\n", "scaling.n[1] with clarabel: about"),
+    ("nnode", "[scaling]\nN = [8]\n", "scaling.N must hold two or more distinct sizes (the "
+     "log-log slope is fitted to them), got [8]"),
+    ("nnode", "[scaling]\nn = [4, 4]\n", "scaling.n must hold two or more distinct sizes"),
     ("stonesoup", "[scenario]\nclutter_rate = [1e12, 1.0, 1.0]\n",
      "scenario.clutter_rate and steps: about"),
 ]

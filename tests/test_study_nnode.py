@@ -1,6 +1,8 @@
 """The N-node study: outputs on a tiny configuration and the properties its rules must
 show against the known truth."""
 
+import json
+
 import numpy as np
 import pytest
 from conftest import tiny_run
@@ -64,6 +66,18 @@ def test_tiny_study_writes_every_table_as_csv_and_report_rebuilds_it(tmp_path):
     assert main(["report", "nnode", "--out", str(tmp_path)]) == 0
     assert {name: (folder / name).read_bytes() for name in before} == before
     assert (folder / "meta.json").read_text() == meta
+
+
+def test_a_failed_solve_shows_a_dash_in_the_scaling_table_never_nan(tmp_path):
+    """_time_solve gives NaN where a backend failed: its cell and a slope of fewer than
+    two timed sizes are "-" (an empty CSV cell), never "nan"."""
+    times = {"vs_N": {"newton": {"2": 1e-4, "4": float("nan")}},
+             "vs_n": {"newton": {"2": 1e-4, "3": 2e-4}}, "repeats": 1}
+    (tmp_path / "scaling.json").write_text(json.dumps(times))
+    text = "\n".join(nnode._scaling_table(tmp_path))
+    assert "nan" not in text.lower()
+    assert "| newton | 0.1 | - | - |" in text and "| newton | 0.1 | 0.2 | 1.71 |" in text
+    assert nnode.slope([2.0, 4.0], [1e-4, float("nan")]) is None
 
 
 def _static(**over):
