@@ -45,7 +45,7 @@ from pathlib import Path  # noqa: E402
 
 from . import config as configs  # noqa: E402
 from . import meta, runner  # noqa: E402
-from .store import Store, StoreError  # noqa: E402
+from .store import Store, StoreError, file_digests, verify_files  # noqa: E402
 
 STUDIES = {
     "table1": "studies.table1",
@@ -158,9 +158,10 @@ def _run_study(name: str, config: dict, args) -> None:
     t0 = time.perf_counter()
     if not _monte_carlo(module):
         module.run(config, out, quick=args.quick, progress=not args.quiet)
-        meta.write(out / META, study=name, config=config, quick=args.quick,
-                   seed=config.get("seed"), wall_time_s=time.perf_counter() - t0,
-                   command=args.command_line)
+        files = file_digests(out, module.MEASUREMENTS)
+        meta.write(out / META, study=name, config=config, quick=args.quick, files=files,
+                   checksum=meta.seal(config, args.quick, files), seed=config.get("seed"),
+                   wall_time_s=time.perf_counter() - t0, command=args.command_line)
         print(f"{name}: wrote {out}", file=sys.stderr)
         return
     store = Store(out / STORE, config)
@@ -170,6 +171,7 @@ def _run_study(name: str, config: dict, args) -> None:
                            scheduler=args.scheduler, progress=not args.quiet, label=name)
             if hasattr(module, "benchmark"):  # timings, measured once after the runs
                 module.benchmark(config, out, progress=not args.quiet)
+                store.record_files(file_digests(out, module.MEASUREMENTS))
             _report_runs(module, store, out)
         finally:  # an interrupted invocation counts too
             wall = time.perf_counter() - t0
@@ -232,6 +234,7 @@ def _source(name: str, out: Path):
     else:
         source = meta.read(out / META)
         config = source["config"]
+        _measurements(module, out, source.get("files") or {}, out / META)
     try:
         module.check(config)
     except configs.ConfigError as exc:
@@ -243,6 +246,7 @@ def _source(name: str, out: Path):
 def _report_runs(module, store: Store, out: Path) -> int:
     """Write the report of a Monte Carlo study from the runs in store; returns how many."""
     config = store.config
+    _measurements(module, out, store.files(), store.path)
     results = store.results(config["runs"])
     if not results:
         raise StoreError(f"{store.path} holds no finished run yet; run the study first")
@@ -251,6 +255,17 @@ def _report_runs(module, store: Store, out: Path) -> int:
               "report shows those (run the study to finish it)", file=sys.stderr)
     module.report(config, list(results.values()), out, store.figure(runner.FIGURE_RUN))
     return len(results)
+
+
+def _measurements(module, out: Path, recorded: dict, record: Path) -> None:
+    """Refuse the study's measurement files (module.MEASUREMENTS, read by its report)
+    unless each is as its run recorded it in `record`: one it did not record is not its
+    own, one it recorded must be there unchanged (SHA-256)."""
+    for name in getattr(module, "MEASUREMENTS", ()):
+        if name not in recorded and (out / name).exists():
+            raise StoreError(f"{out / name} was not written by the run recorded in {record}; "
+                             "move it away or run the study again")
+    verify_files(out, recorded)
 
 
 def main(argv=None) -> int:

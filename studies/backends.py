@@ -96,6 +96,8 @@ COLUMNS = ("mode", "call", "backend", "n", "N", "criterion", "kind", "per_call",
            "failures", "first_failure")
 INSTANCE_COLUMNS = ("mode", "call", "backend", "n", "N", "criterion", "kind", "problem",
                     "time_ms", "objective_gap", "optimality_gap", "failed")
+# what `run` measures and `report` reads; the CLI records their SHA-256 and verifies them
+MEASUREMENTS = ("backends.csv", "backends_instances.csv", "machine.json")
 FIRST_BATCH = 10  # problems of the untimed first fuse_batch call (loads, allocates)
 
 

@@ -1,11 +1,14 @@
 """What a study ran on: git commit, package versions, machine.
 
 `run` writes meta.json (the configuration, the command, and the times of every invocation
-of a resumed study); `report` writes report.json beside it and never touches meta.json.
+of a resumed study; a benchmark's also the SHA-256 of its measurement files and a
+checksum, which `report` verifies); `report` writes report.json beside it and never
+touches meta.json.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -61,4 +64,14 @@ def read(path: Path) -> dict:
         raise StoreError(f"{path} is not readable ({exc}); run the study again") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
         raise StoreError(f"{path} holds no configuration; run the study again")
+    if meta.get("checksum") != seal(meta["config"], meta.get("quick"), meta.get("files")):
+        raise StoreError(f"{path}: its config, quick and files do not match its checksum "
+                         "(it was changed or damaged); run the study again")
     return meta
+
+
+def seal(config: dict, quick, files) -> str:
+    """SHA-256 of what `report` reads of a benchmark's meta.json: its configuration, quick
+    flag and {name: SHA-256} of its measurement files (keys sorted, as `write` writes)."""
+    text = json.dumps([config, quick, files], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()

@@ -98,6 +98,7 @@ MONITOR = "RBMCDA"  # the rule column of a monitoring node's row
 RULE_METHODS = ("bci", "mbci", "naive", "fast-ci", "ifci")  # rules fusing groups of any size
 CI_FAMILY = ("bci", "mbci")
 THROUGHPUT = "throughput.json"
+MEASUREMENTS = (THROUGHPUT,)  # files `benchmark` writes; the CLI records and verifies them
 # tables of named entries: a --config's replaces the default's whole (config.load)
 NAMED = ("network.level1", "network.level2", "rules")
 

@@ -39,6 +39,8 @@ from trackers.models import turn_model
 from . import config as configs
 from . import plotting, stats
 
+SCALING = "scaling.json"
+MEASUREMENTS = (SCALING,)  # files `benchmark` writes; the CLI records and verifies them
 NAMED = ("sweeps",)  # a --config's [sweeps] replaces the default's whole (config.load)
 RULES = {
     "naive": {"method": "naive"},
@@ -429,7 +431,7 @@ def benchmark(config: dict, out: Path, progress: bool = True) -> None:
                                    for n in sc["n"]}
         if progress:
             print(f"nnode scaling: {backend} timed", flush=True)
-    (Path(out) / "scaling.json").write_text(json.dumps(result, indent=1))
+    (Path(out) / SCALING).write_text(json.dumps(result, indent=1))
 
 
 def _time_solve(backend: str, n: int, N: int, repeats: int, rng) -> float:
@@ -588,7 +590,7 @@ def _dynamic_table(config, results) -> list[str]:
 
 
 def _scaling(out: Path) -> dict | None:
-    path = out / "scaling.json"
+    path = out / SCALING
     return json.loads(path.read_text()) if path.exists() else None
 
 

@@ -1,7 +1,8 @@
 """SQLite store of a study's finished runs: one row per run, committed as it finishes.
 
 The store holds the configuration the study runs with (so `report` needs no flags) and,
-per run, its result, the figure data of the run the figures show, and its compute time.
+per run, its result, the figure data of the run the figures show, and its compute time;
+and the SHA-256 of each measurement file a run wrote beside it (a benchmark's timings).
 Every row carries a SHA-256 checksum of its content; opening a store verifies every row
 and refuses one that does not verify, with one line. Only a missing file is a new store:
 an empty, truncated or foreign file is refused, never read as new. A store of another
@@ -32,6 +33,26 @@ _TABLES = (
 
 class StoreError(RuntimeError):
     """The store is missing, damaged, or belongs to another configuration."""
+
+
+def file_digests(folder: Path, names) -> dict[str, str]:
+    """{name: SHA-256 of folder/name} of the measurement files a run wrote there (the
+    timings of a benchmark), which the run records so that `report` can verify them."""
+    return {name: hashlib.sha256((Path(folder) / name).read_bytes()).hexdigest()
+            for name in names}
+
+
+def verify_files(folder: Path, digests: dict) -> None:
+    """StoreError (one line) unless every file of digests {name: SHA-256} is in folder
+    with its recorded SHA-256: deleted, emptied, truncated or edited since `run` wrote it."""
+    for name, digest in digests.items():
+        path = Path(folder) / name
+        if not path.is_file():
+            raise StoreError(f"{path} is missing, though the run wrote it; run the study "
+                             "again to measure it")
+        if file_digests(folder, [name])[name] != digest:
+            raise StoreError(f"{path} does not match the checksum its run recorded (it was "
+                             "changed or damaged); run the study again to measure it")
 
 
 def _checksum(*fields) -> str:
@@ -208,6 +229,19 @@ class Store:
                 self._set("wall_time_s", wall + wall_seconds)
                 self._set("invocations", count + 1)
         self._guard(update)
+
+    def record_files(self, digests: dict) -> None:
+        """Record {name: SHA-256} of the measurement files run wrote beside the store."""
+        def update():
+            with self._db:
+                self._set("files", digests)
+        self._guard(update)
+
+    def files(self) -> dict:
+        """{name: SHA-256} of the recorded measurement files ({} if none was recorded)."""
+        row = self._guard(lambda: self._db.execute(
+            "SELECT value FROM meta WHERE key = 'files'").fetchone())
+        return {} if row is None else json.loads(row[0])
 
     def totals(self) -> dict:
         """Wall time and count of every `run` invocation, and the runs' compute time."""

@@ -1,7 +1,11 @@
 """The results store: every row verified by its checksum, a damaged or foreign file refused
 with one line (never read, never treated as new), the configuration kept for `report`."""
 
+import json
+import re
+import shutil
 import sqlite3
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,3 +136,73 @@ def test_the_cli_refuses_a_damaged_store_in_one_line(tmp_path, capsys):
     assert main(["report", "table1", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "run 0 does not match its checksum" in err
+
+
+# ------------------------------------------------------------------ measurement files
+
+BACKENDS = ("n = [2]\nN = [2, 3]\ninstances = 2\nrepeats = 1\nbatch_size = 50\nlarge = []\n"
+            "batch_shapes = [[3, 2]]\nbatch_repeats = 1\n")
+NETWORK = ("runs = 2\n[scenario]\nn_steps = 8\nn_targets = 2\nbirths = [0.0]\n[tracker]\n"
+           "n_particles = 3\n[benchmark]\nsources = [2, 3]\ntargets_at_sources = 3\n"
+           "targets = [2, 4]\nsources_at_targets = 2\nwarmup = 1\nsteps = 2\n")
+DAMAGE = {  # how a measurement file is damaged after `run` wrote it
+    "emptied": lambda p: p.write_text(""),
+    "truncated": lambda p: p.write_bytes(p.read_bytes()[:len(p.read_bytes()) // 2]),
+    "garbage": lambda p: p.write_bytes(b"\xff\xfe garbage"),
+    "NaN cell": lambda p: p.write_text(re.sub(r"\d+\.\d+", "NaN", p.read_text(), count=1)),
+    "deleted": lambda p: p.unlink(),
+}
+
+
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory) -> Path:
+    """OUT of a tiny backends benchmark and a tiny network study, as `run` left them."""
+    out = tmp_path_factory.mktemp("measured")
+    for study, text in (("backends", BACKENDS), ("network", NETWORK)):
+        (out / f"{study}.toml").write_text(text)
+        assert main(["run", study, "--config", str(out / f"{study}.toml"), "--out",
+                     str(out), "--quiet", "--workers", "1"]) == 0
+        assert main(["report", study, "--out", str(out)]) == 0  # intact: reported
+    return out
+
+
+def _report_refused(out, study, capsys) -> str:
+    assert main(["report", study, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("damage", DAMAGE)
+@pytest.mark.parametrize("study,name", [
+    ("backends", "backends.csv"), ("backends", "backends_instances.csv"),
+    ("backends", "machine.json"), ("network", "throughput.json")])
+def test_a_damaged_or_missing_measurement_file_is_refused_by_report(measured, tmp_path, capsys,
+                                                                    study, name, damage):
+    out = tmp_path / "out"
+    shutil.copytree(measured, out)
+    DAMAGE[damage](out / study / name)
+    err = _report_refused(out, study, capsys)
+    assert f"{study}/{name}" in err and ("missing" in err or "checksum" in err)
+
+
+def test_a_hand_edited_benchmark_meta_json_is_refused_by_report(measured, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(measured, out)
+    path = out / "backends" / "meta.json"
+    info = json.loads(path.read_text())
+    info["config"]["instances"] = 3
+    path.write_text(json.dumps(info, indent=2, sort_keys=True))
+    assert "meta.json: its config, quick and files do not match its checksum" in \
+        _report_refused(out, "backends", capsys)
+
+
+def test_a_measurement_file_its_run_did_not_record_is_refused(measured, tmp_path, capsys):
+    """A throughput.json beside a store that recorded none (left by another run) is not
+    shown as this run's."""
+    out = tmp_path / "out"
+    shutil.copytree(measured, out)
+    with sqlite3.connect(out / "network" / "runs.sqlite") as con:
+        con.execute("DELETE FROM meta WHERE key = 'files'")
+    assert "throughput.json was not written by the run recorded in" in \
+        _report_refused(out, "network", capsys)
