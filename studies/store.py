@@ -12,6 +12,7 @@ replaces the old one, so a failed first attempt never blocks the corrected one).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -77,12 +78,17 @@ class Store:
     opens it to run `config`: a missing file becomes a new store; an existing one must
     hold this configuration (up to the run count, which it takes from config) or no runs.
     With write=False nothing is created or changed: it only checks that running config
-    would be accepted.
+    would be accepted. Opened to run a config, it holds a lock (an flock on path + ".lock")
+    until closed, and refuses a store another process holds so.
     """
 
     def __init__(self, path: Path, config: dict | None = None, *, write: bool = True):
         self.path = Path(path)
-        self._db = None
+        self._db = self._lock = None
+        if config is not None:  # to run: no other run may be using the store
+            self._lock = _lock(self.path, create=write)
+            if not write:
+                self._unlock()
         if not self.path.exists():
             if config is None:
                 raise StoreError(f"{self.path} does not exist: the study has not been run "
@@ -128,7 +134,7 @@ class Store:
             self._set("config", config)
             self._set("wall_time_s", 0.0)
             self._set("invocations", 0)
-        self.close()
+        self._db.close()
         os.replace(new, self.path)
         self._open(writable=True)
         self.config = config
@@ -249,7 +255,33 @@ class Store:
                 "invocations": self._get("invocations"),
                 "run_compute_time_s": self.run_seconds()}
 
+    def _unlock(self) -> None:
+        if self._lock is not None:
+            os.close(self._lock)  # releases the flock
+            self._lock = None
+
     def close(self) -> None:
         if self._db is not None:
             self._db.close()
             self._db = None
+        self._unlock()
+
+
+def _lock(path: Path, create: bool) -> int | None:
+    """A descriptor holding an exclusive flock on the lock file beside the store at path
+    (created with its folder if create; None if there is none and create is False);
+    StoreError at once if another process holds it: two runs adding to one store would
+    rewrite each other's configuration."""
+    lock = path.with_name(path.name + ".lock")
+    if create:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    elif not lock.exists():
+        return None
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT if create else os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise StoreError(f"another run is using {path.parent}; wait for it or choose another "
+                         "--out") from None
+    return fd

@@ -47,6 +47,22 @@ def test_a_store_keeps_results_figure_data_config_and_times(tmp_path):
     store.close()
 
 
+def test_a_second_run_on_a_store_in_use_is_refused_at_once(tmp_path):
+    """Two runs on one --out: the second is refused (checked or opened to run), and
+    neither its configuration nor a run of it reaches the store."""
+    path = tmp_path / "table1" / "runs.sqlite"
+    first = Store(path, CONFIG)
+    for write in (False, True):
+        with pytest.raises(StoreError, match=f"^another run is using {tmp_path / 'table1'}; "
+                           "wait for it or choose another --out$"):
+            Store(path, CONFIG | {"seed": 2}, write=write)
+    first.put(0, {"row": {"mse": 1.0}}, None, 0.5)
+    first.close()
+    store = Store(path, CONFIG)  # free again
+    assert store.config == CONFIG and store.done() == {0}
+    store.close()
+
+
 def _tamper(path, sql):
     with sqlite3.connect(path) as con:
         con.execute(sql)
