@@ -268,6 +268,19 @@ def _measurements(module, out: Path, recorded: dict, record: Path) -> None:
     verify_files(out, recorded)
 
 
+def _list() -> int:
+    """Print the studies and groups; a reader that stops early (`| head`) ends it quietly."""
+    try:
+        for name in sorted(STUDIES):
+            print(f"{name:10s} {_summary_line(name)}")
+        for group, members in GROUPS.items():
+            print(f"{group:10s} runs {' and '.join(members)}")
+        sys.stdout.flush()
+    except BrokenPipeError:  # nothing more can be written (the Python docs' recipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0
+
+
 def main(argv=None) -> int:
     if signal.getsignal(signal.SIGINT) is _stop_while_starting:  # started: Ctrl-C as usual
         signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -275,11 +288,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     args.command_line = " ".join(["python -m studies", *argv])
     if args.command == "list":
-        for name in sorted(STUDIES):
-            print(f"{name:10s} {_summary_line(name)}")
-        for group, members in GROUPS.items():
-            print(f"{group:10s} runs {' and '.join(members)}")
-        return 0
+        return _list()
     try:
         (_run if args.command == "run" else _report)(args)
     except (StoreError, configs.ConfigError, runner.RunError, OSError) as exc:

@@ -66,7 +66,7 @@ def _user_file(path, defaults: dict) -> dict:
     try:
         with open(path, "rb") as fh:
             user = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # TOMLDecodeError, UnicodeDecodeError (not UTF-8)
         raise ConfigError(f"--config {path}: {exc}") from None
     unknown = sorted(set(user) - set(defaults))
     if unknown:

@@ -192,7 +192,10 @@ class _Dask:
         except ImportError:
             msg = "--scheduler needs dask.distributed: pip install 'fusion-opt[dask]'"
             raise SystemExit(msg) from None
-        self._client = Client(scheduler)
+        try:
+            self._client = Client(scheduler)
+        except (ValueError, OSError) as exc:  # a malformed or unreachable address
+            raise RunError(f"--scheduler {scheduler!r}: {exc}") from None
         self._futures: list = []
         self._yielded: set[int] = set()
 

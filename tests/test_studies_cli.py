@@ -4,6 +4,7 @@ Killing and interrupting a running study: test_studies_interrupt.py."""
 
 import json
 import sqlite3
+import subprocess
 import sys
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pytest
 from studies import runner, table1
 from studies.__main__ import GROUPS, STUDIES, main
 
+ROOT = Path(__file__).parents[1]
 # 40 steps, 5 particles and the exact "newton" backend: a run takes about 0.05 s.
 TINY = """
 runs = 3
@@ -135,6 +137,24 @@ def test_dask_local_cluster_gives_identical_results(tiny, tmp_path):
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
         assert _run(tiny, tmp_path / "d", "--scheduler", cluster.scheduler_address) == serial
+
+
+def test_a_scheduler_address_that_is_not_one_is_refused_in_one_line(tiny, tmp_path, capsys):
+    pytest.importorskip("dask.distributed")
+    assert main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path), "--quiet",
+                 "--scheduler", "not an address"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "--scheduler 'not an address': missing port number" in err
+
+
+def test_list_into_a_reader_that_stops_early_ends_quietly():
+    """`python -m studies list | head -1`: the pipe closes before list writes."""
+    proc = subprocess.Popen([sys.executable, "-m", "studies", "list"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 0 and err == ""
 
 
 def test_store_of_another_configuration_is_refused_before_running(tiny, tmp_path, capsys):

@@ -153,6 +153,15 @@ def test_bad_flags_are_refused_before_anything_is_created(tmp_path, capsys, flag
     assert not out.exists()
 
 
+def test_a_config_file_that_is_not_utf8_is_refused_in_one_line(tmp_path, capsys):
+    path = tmp_path / "binary.toml"
+    path.write_bytes(b"\xff\xfe")
+    out = tmp_path / "out"
+    err = _refused(capsys, ["run", "table1", "--config", str(path), "--out", str(out)])
+    assert f"table1: --config {path}: 'utf-8' codec can't decode byte 0xff" in err
+    assert not out.exists()
+
+
 def test_runs_flag_does_not_apply_to_a_benchmark(tmp_path, capsys):
     assert "--runs does not apply" in _refused(capsys, ["run", "backends", "--runs", "3",
                                                         "--out", str(tmp_path)])
