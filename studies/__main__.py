@@ -248,8 +248,9 @@ def _report_runs(module, store: Store, out: Path) -> int:
     config = store.config
     _measurements(module, out, store.files(), store.path)
     results = store.results(config["runs"])
-    if not results:
-        raise StoreError(f"{store.path} holds no finished run yet; run the study first")
+    if len(results) < 2:
+        raise StoreError(f"{store.path} holds {len(results)} finished run(s) and "
+                         f"{configs.INTERVAL_RUNS}; run the study to finish it")
     if len(results) < config["runs"]:
         print(f"note: {store.path} holds {len(results)} of {config['runs']} runs; the "
               "report shows those (run the study to finish it)", file=sys.stderr)

@@ -136,11 +136,12 @@ def number(where: str, value, low: float | None = None, high: float | None = Non
     return float(value)
 
 
-def integer(where: str, value, low: int | None = None, high: int | None = None) -> int:
+def integer(where: str, value, low: int | None = None, high: int | None = None, *,
+            why: str = "") -> int:
     """An integer (not a bool, not a float) in [low, high]."""
     ok = isinstance(value, int) and not isinstance(value, bool)
     if not (ok and (low is None or value >= low) and (high is None or value <= high)):
-        _refuse(where, "an integer", value, low=low, high=high)
+        _refuse(where, "an integer", value, why, low=low, high=high)
     return value
 
 
@@ -194,11 +195,13 @@ def items(where: str, value, length: int | None = None) -> list:
 
 
 MAX_RUNS = 10_000  # the bootstrap of a table cell draws 2000 x runs indices
+INTERVAL_RUNS = "a 95% interval needs two or more runs"
 
 
 def run_fields(config: dict) -> None:
-    """runs an integer in [1, MAX_RUNS], seed a non-negative integer."""
-    integer("runs", config.get("runs"), low=1, high=MAX_RUNS)
+    """runs an integer in [2, MAX_RUNS] (every Monte Carlo study reports 95% intervals
+    over its runs), seed a non-negative integer."""
+    integer("runs", config.get("runs"), low=2, high=MAX_RUNS, why=INTERVAL_RUNS)
     integer("seed", config.get("seed"), low=0)
 
 

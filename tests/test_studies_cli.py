@@ -105,6 +105,18 @@ def test_report_of_a_study_never_run_says_so_and_creates_nothing(tmp_path, capsy
     assert not out.exists()
 
 
+def test_report_of_one_stored_run_is_refused_not_given_zero_width_intervals(tiny, tmp_path,
+                                                                            capsys):
+    _run(tiny, tmp_path, "--workers", "1")
+    with sqlite3.connect(tmp_path / "table1" / "runs.sqlite") as con:
+        con.execute("DELETE FROM runs WHERE idx > 0")  # as if stopped after run 0
+    capsys.readouterr()
+    assert main(["report", "table1", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert "holds 1 finished run(s) and a 95% interval needs two or more runs" in err
+
+
 def test_same_seed_same_table_whatever_the_executor(tiny, tmp_path):
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
     assert _run(tiny, tmp_path / "p", "--workers", "2") == serial

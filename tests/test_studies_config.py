@@ -9,6 +9,7 @@ from studies import config as configs
 from studies import runner
 from studies.__main__ import STUDIES, _module, main
 
+RUNS = "runs must be an integer >= 2 and <= 10000 (a 95% interval needs two or more runs), got"
 CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[fusion]\ngrowth = 0.5\n", "table1: fusion.growth must be a finite number "
      ">= 1 (the paper's chi^-1"),
@@ -19,7 +20,7 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[fusion]\nchi = 2.0\n", "[fusion] has unknown field(s) ['chi']"),
     ("table1", "[scenario]\ndt = nan\n", "scenario.dt must be a finite number, got nan"),
     ("table1", "[scenario]\nr = inf\n", "scenario.r must be a finite number, got inf"),
-    ("table1", "runs = -3\n", "runs must be an integer >= 1 and <= 10000, got -3"),
+    ("table1", "runs = -3\n", f"{RUNS} -3"),
     ("table1", "fusion = 3\n", "[fusion] must be a table, got 3"),
     ("table1", "[fusion]\nwindow = [15.0, 13.0]\n", "fusion.window must be [start, end]"),
     ("table1", "[fusion]\nwindow = [15.0]\n", "fusion.window must be a list of 2 values"),
@@ -31,9 +32,10 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[scenario]\ndt = -1.0\n", "dt must be a finite positive number"),
     ("table1", "[scenario]\ntruth_process_noise = 1\n", "must be true or false"),
     ("table1", "runz = 5\n", "unknown field(s) ['runz']"),
-    ("table1", "runs = 10000000000000\n", "runs must be an integer >= 1 and <= 10000, got 1"),
-    ("table1", "runs = 0\n", "runs must be an integer >= 1 and <= 10000, got 0"),
-    ("table1", 'runs = "5"\n', "runs must be an integer >= 1 and <= 10000, got '5'"),
+    ("table1", "runs = 10000000000000\n", f"{RUNS} 1"),
+    ("table1", "runs = 0\n", f"{RUNS} 0"),
+    ("table2", "runs = 1\n", f"{RUNS} 1"),
+    ("table1", 'runs = "5"\n', f"{RUNS} '5'"),
     ("table1", "seed = -1\n", "seed must be an integer >= 0, got -1"),
     ("table1", "[check]\nsteps = -1\n", "check.steps must be an integer >= 0 and <= 960, got -1"),
     ("table1", '[check]\nbackend = "gurobi"\n', "check.backend must be one of ['newton'"),
@@ -69,7 +71,7 @@ CASES = [  # (study, TOML file, what the one line must say)
      "number >= 1"),
     ("nnode", "[static]\nchi_inv_true = 1.5\n", "(chi_inv_true is now growth_true"),
     ("nnode", "[static]\nrho = nan\n", "static.rho must be a finite number >= 0 and <= 1"),
-    ("nnode", "runs = -1\n", "runs must be an integer >= 1 and <= 10000, got -1"),
+    ("nnode", "runs = -1\n", f"{RUNS} -1"),
     ("nnode", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("nnode", "[dynamic]\nburn_in = 500\n", "dynamic.burn_in must be below dynamic.steps"),
     ("nnode", '[scaling]\nbackends = ["gurobi"]\n', "scaling.backends[0] must be one of"),
@@ -143,8 +145,9 @@ def test_a_bad_configuration_is_refused_before_anything_is_created(tmp_path, cap
     (["--workers", "-2"], "--workers must be an integer from 1 to 256, got -2"),
     (["--workers", "1000000"], "--workers must be an integer from 1 to 256, got 1000000"),
     (["--workers", "99999999999999999999999"], "from 1 to 256, got 99999999999999999999999"),
-    (["--runs", "0"], "runs must be an integer >= 1 and <= 10000, got 0"),
-    (["--runs", "100000000000"], "runs must be an integer >= 1 and <= 10000, got 1000000"),
+    (["--runs", "0"], f"{RUNS} 0"),
+    (["--runs", "1"], f"{RUNS} 1"),
+    (["--runs", "100000000000"], f"{RUNS} 1000000"),
     (["--seed", "-1"], "seed must be an integer >= 0, got -1"),
 ])
 def test_bad_flags_are_refused_before_anything_is_created(tmp_path, capsys, flags, message):
@@ -171,9 +174,9 @@ def test_a_group_checks_every_store_before_running_any_study(tmp_path, capsys):
     """`run paper` with a table2 store of another seed: refused before table1 starts."""
     main_seed = ["run", "table2", "--out", str(tmp_path), "--seed", "1"]
     table2 = tmp_path / "table2"
-    with pytest.MonkeyPatch.context() as m:  # a store with one run of seed 1
+    with pytest.MonkeyPatch.context() as m:  # a store with two runs of seed 1
         m.setattr(runner, "run_all", lambda run_one, config, store, **kw:
-                  store.put(0, {}, None, 0.0))
+                  [store.put(i, {}, None, 0.0) for i in range(2)])
         m.setattr(_module("table2"), "report", lambda *args: None)
         assert main(main_seed) == 0
     capsys.readouterr()

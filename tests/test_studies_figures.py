@@ -13,11 +13,11 @@ from studies.__main__ import main
 TINY = {
     "table1": 'runs = 2\nbackend = "newton"\n[scenario]\nn_steps = 40\nn_particles = 4\n'
               "[check]\nsteps = 0\n",
-    "table2": 'runs = 1\nbackend = "newton"\n[scenario]\nn_steps = 40\nn_particles = 4\n',
+    "table2": 'runs = 2\nbackend = "newton"\n[scenario]\nn_steps = 40\nn_particles = 4\n',
     "nnode": "runs = 2\n[static]\ndraws = 10\n[sweeps]\nN = [2, 4]\n[dynamic]\nN = [2]\n"
-             'steps = 12\nburn_in = 2\n[scaling]\nN = [2, 3]\nn = [2]\nbackends = ["newton"]\n'
+             'steps = 12\nburn_in = 2\n[scaling]\nN = [2, 3]\nn = [2, 3]\nbackends = ["newton"]\n'
              "repeats = 1\n",
-    "network": "runs = 1\n[scenario]\nn_steps = 10\nn_targets = 3\nbirths = [0.0]\n"
+    "network": "runs = 2\n[scenario]\nn_steps = 10\nn_targets = 3\nbirths = [0.0]\n"
                "[tracker]\nn_particles = 3\n[benchmark]\nsources = [2]\ntargets_at_sources = 3"
                "\ntargets = [3]\nsources_at_targets = 2\nwarmup = 1\nsteps = 1\n",
 }

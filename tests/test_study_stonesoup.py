@@ -261,7 +261,7 @@ def test_scores_of_a_row_that_is_the_truth(config, simulation):
     (("metrics", "cutoff"), -1.0, "metrics.cutoff must be a finite number > 0"),
     (("figure", "rule"), "none", "figure.rule must be one of"),
     (("backend",), "closed-form", "backend 'closed-form' fuses two estimates only"),
-    (("runs",), 0, "runs must be an integer >= 1"),
+    (("runs",), 1, r"runs must be an integer >= 2 and <= 10000 \(a 95% interval needs two"),
 ])
 def test_check_refuses_a_bad_field_naming_it(path, value, message):
     with pytest.raises(configs.ConfigError, match=message):
