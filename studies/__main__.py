@@ -91,7 +91,7 @@ def _parser() -> argparse.ArgumentParser:
                             "store, with the configuration it was run with")
     for s in (run, report):
         s.add_argument("name", choices=names, help="study, or 'paper' for table1 and table2")
-        s.add_argument("--out", type=Path, default=Path("results"),
+        s.add_argument("--out", default="results",
                        help="output folder; each study writes to OUT/NAME (default: results)")
     run.add_argument("--runs", type=int, help="Monte Carlo runs (default: the config's)")
     run.add_argument("--seed", type=int, help="root seed; run i uses SeedSequence(seed)"
@@ -269,6 +269,13 @@ def _measurements(module, out: Path, recorded: dict, record: Path) -> None:
     verify_files(out, recorded)
 
 
+def _out(text: str) -> Path:
+    """The --out folder; an empty one is refused (it would silently be the current one)."""
+    if not text:
+        raise configs.ConfigError("--out must name a folder, got ''")
+    return Path(text)
+
+
 def _list() -> int:
     """Print the studies and groups; a reader that stops early (`| head`) ends it quietly."""
     try:
@@ -291,6 +298,7 @@ def main(argv=None) -> int:
     if args.command == "list":
         return _list()
     try:
+        args.out = _out(args.out)
         (_run if args.command == "run" else _report)(args)
     except (StoreError, configs.ConfigError, runner.RunError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)  # OSError: an --out that cannot be written

@@ -165,6 +165,15 @@ def test_a_config_file_that_is_not_utf8_is_refused_in_one_line(tmp_path, capsys)
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command", ["run", "report"])
+def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, capsys,
+                                                                  monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    err = _refused(capsys, [command, "table1", "--out", ""])
+    assert "--out must name a folder, got ''" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_runs_flag_does_not_apply_to_a_benchmark(tmp_path, capsys):
     assert "--runs does not apply" in _refused(capsys, ["run", "backends", "--runs", "3",
                                                         "--out", str(tmp_path)])
