@@ -292,6 +292,8 @@ def _list() -> int:
 def main(argv=None) -> int:
     if signal.getsignal(signal.SIGINT) is _stop_while_starting:  # started: Ctrl-C as usual
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    # SIGTERM (a kill, a job scheduler) stops like Ctrl-C: finished runs stored, counted
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
     args.command_line = " ".join(["python -m studies", *argv])

@@ -8,7 +8,8 @@ data its report's figures draw for run FIGURE_RUN (None for every other run). Ea
 finished run is committed to the store as it arrives, so an interrupted study resumes
 where it stopped, with no run lost or repeated.
 
-Ctrl-C (SIGINT) stops at once: the serial runner is interrupted inside its run; pool
+Ctrl-C (SIGINT) stops at once, and so does SIGTERM (the CLI raises KeyboardInterrupt on
+either): the serial runner is interrupted inside its run; pool
 workers ignore SIGINT and are terminated without waiting for their runs. Runs that have
 finished by then, and arrived, are stored before KeyboardInterrupt goes on to the caller.
 
@@ -82,26 +83,32 @@ def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
     return len(jobs)
 
 
+STOP = (signal.SIGINT, signal.SIGTERM)  # the CLI raises KeyboardInterrupt on either
+
+
 @contextlib.contextmanager
 def _sigint_deferred():
-    """Hold a SIGINT that arrives inside the block and raise it when the block ends."""
+    """Hold a SIGINT or SIGTERM that arrives inside the block and raise KeyboardInterrupt
+    when the block ends."""
     caught = []
-    previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
+    previous = {sig: signal.signal(sig, lambda *_: caught.append(True)) for sig in STOP}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if caught:
         raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
 def _sigint_ignored():
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in STOP}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _executor(workers: int, scheduler: str | None):
@@ -125,7 +132,9 @@ class _Serial:
 
 
 def _ignore_sigint() -> None:
+    """A pool worker's signals: SIGINT ignored, SIGTERM (how the pool ends it) ends it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 class _Pool:

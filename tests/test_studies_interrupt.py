@@ -1,6 +1,6 @@
 """Stopping a running study. Killed (SIGKILL), it loses no stored run; on Ctrl-C (SIGINT
-to its process group, as a terminal sends it) it stops within 2 s and says how many runs
-are stored. Either way the stored runs are intact, the resumed study holds the results
+to its process group, as a terminal sends it) or SIGTERM it stops within 2 s and says how
+many runs are stored. Either way the stored runs are intact, the resumed study holds the results
 of an uninterrupted one (so its tables are the same), and meta.json counts the time of
 every invocation."""
 
@@ -94,10 +94,12 @@ def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, 
     assert _resume(config, tmp_path) == uninterrupted
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.parametrize("workers", ["1", "2"])
-def test_ctrl_c_stops_within_2_s_and_the_study_resumes(config, uninterrupted, tmp_path,
-                                                       workers):
-    proc, err, stop = _start_and_signal(config, tmp_path, workers, signal.SIGINT)
+def test_ctrl_c_or_sigterm_stops_within_2_s_and_the_study_resumes(config, uninterrupted,
+                                                                  tmp_path, workers, sig):
+    """SIGTERM as Ctrl-C: the stored runs are said, and the invocation is counted."""
+    proc, err, stop = _start_and_signal(config, tmp_path, workers, sig)
     assert proc.returncode == 130, err
     assert stop < 2.0, f"stopped after {stop:.2f} s"
     stored = _stored(tmp_path / "table1" / "runs.sqlite")
