@@ -105,10 +105,10 @@ def _check_values(means, covs, where) -> int:
 @jit
 def scaled(P, q, shift, S) -> float:
     """S = sym(P) / q * 2^-shift, the covariance a node is fused with (scaled units);
-    returns |S|_F, from entries scaled by a power of two near the largest (the squares of
-    1e-165 or 1e155 leave float64)."""
+    returns |S|_F, summed again from entries scaled by a power of two near the largest
+    where the squares may leave float64's normal range (entries beyond 1e-145..1e145)."""
     n = P.shape[0]
-    top = 0.0
+    top, norm2 = 0.0, 0.0
     factor = pow2(-shift)
     for j in range(n):
         for l in range(n):
@@ -119,7 +119,10 @@ def scaled(P, q, shift, S) -> float:
                 x /= q
             S[j, l] = x * factor if factor > 0.0 else np.ldexp(x, -shift)
             top = max(top, abs(S[j, l]))
-    if not 0.0 < top < np.inf:
+            norm2 += S[j, l] * S[j, l]
+    if 1e-290 < norm2 < 1e290 or top == 0.0:  # entries within 1e-145 of the largest count
+        return np.sqrt(norm2)                  # for at most 1e-290 of the sum
+    if not top < np.inf:
         return top
     unit = pow2(min(max(-math.frexp(top)[1], -1022), 1022))  # top * unit in [2^-52, 4)
     norm2 = 0.0
