@@ -208,16 +208,22 @@ def _distance(diff: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarra
     """Distances |diff| over the last axis in units of threshold's power of two s (exact:
     the squares stay in float64 for any threshold), and whether each is below threshold;
     a difference that overflowed (inf) is never below it."""
-    s = 2.0 ** np.frexp(threshold)[1]
+    s = _unit(threshold)
     with np.errstate(over="ignore", invalid="ignore"):
         d = np.linalg.norm(diff / s, axis=-1)
     return d, d < threshold / s
 
 
+def _unit(threshold: float) -> float:
+    """The power of two s in [threshold, 2 threshold), at most 2^1023 (2^1024 overflows:
+    a threshold of 1e308 then grouped nothing), in which `_distance` measures."""
+    return float(np.ldexp(1.0, min(int(np.frexp(threshold)[1]), 1023)))
+
+
 def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
     """`_distance` of points p (m, d) to centroids c (K, d), (m, K); by scipy's cdist
     (faster than the differences) unless a coordinate in units of s overflows."""
-    s = 2.0 ** np.frexp(threshold)[1]
+    s = _unit(threshold)
     with np.errstate(over="ignore"):
         ps, cs = p / s, c / s
     if np.isfinite(ps).all() and np.isfinite(cs).all():
@@ -293,7 +299,7 @@ def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list
     """Source by source, gated optimal assignment to the groups' centroids."""
     groups: list[list[int]] = []
     centroids: list[np.ndarray] = []
-    s = 2.0 ** np.frexp(threshold)[1]  # `_distance`'s unit
+    s = _unit(threshold)
     for k in np.unique(owner):
         flat = np.flatnonzero(owner == k)
         p = points[flat]

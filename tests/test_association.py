@@ -173,7 +173,10 @@ def test_coordinates_and_thresholds_at_the_ends_of_float64(method):
               [[("s0", 0), ("s1", 0)], [("s2", 0)]]),
              (([[1e200, 1e200]], [[1e200 + 1e190, 1e200]]), 1e195, [[("s0", 0), ("s1", 0)]]),
              (([[1e200, 1e200]], [[1e200, 1e200]]), 1e-300, [[("s0", 0), ("s1", 0)]]),
-             (([[1e-300, 0.0]], [[3e-300, 0.0]]), 1e-300, [[("s0", 0)], [("s1", 0)]]))
+             (([[1e-300, 0.0]], [[3e-300, 0.0]]), 1e-300, [[("s0", 0)], [("s1", 0)]]),
+             # 2^1024 overflowed the distances' unit: a threshold of 1e308 grouped nothing
+             (([[0.0, 0.0]], [[0.1, 0.0]]), np.finfo(float).max, [[("s0", 0), ("s1", 0)]]),
+             (([[0.0, 0.0]], [[0.1, 0.0]]), 1e308, [[("s0", 0), ("s1", 0)]]))
     for means, threshold, want in cases:
         groups = fo.associate(_reports(*means), threshold, method)
         assert [list(g.pairs) for g in groups] == want
