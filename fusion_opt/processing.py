@@ -18,11 +18,14 @@ Each step:
    which it shares the most (source, source track id) pairs, ties going to the more
    recent, then to the nearer one over `dims`; greedily, largest overlap first, so an id
    goes to at most one group; a group sharing no pair with a free id gets a new id, never
-   reused (until `reset`). So a target keeps its fused id while any of its source tracks
-   continues: through a missed report at one source, when one source restarts its track,
-   and, for up to `memory` - 1 steps, through steps at which no group of it is reported
-   (every source missed it, or too few did for `min_sources`). A fused track remembers
-   the pairs and the mean of the last step it was reported at.
+   reused (until `reset`). A fused track remembers the pairs and the mean of the last
+   step it was reported at, so a target keeps its fused id while one of the source tracks
+   of that step continues: through a missed report at one source, when one source
+   restarts its track, and, for up to `memory` - 1 steps, through steps at which no group
+   of it is reported (every source missed it, or too few did for `min_sources`). Not when
+   both happen at once: a source that missed the last report and returns as the other
+   source restarts brings back a pair the fused track no longer holds, and the group
+   gets a new id.
 
 A source whose report is missing contributes nothing that step. The fused `Estimates`
 are ordered by id, stamped `node=name` and with `time`: the step's `time` if given, else
@@ -43,7 +46,7 @@ import numpy as np
 from .association import Group, associate, check_dims, check_method, check_threshold
 from .backends import BACKENDS
 from .batch import fuse_batch
-from .estimates import Estimates
+from .estimates import Estimates, check_time
 from .results import FusionInputError
 from .validation import hashable
 
@@ -279,8 +282,11 @@ class ProcessingNode:
         return ordered
 
     def _time(self, reports: dict[Hashable, Estimates], time) -> float | None:
-        if time is not None:
-            return time  # validated by Estimates
+        if time is not None:  # checked before anything changes
+            try:
+                return check_time(time)
+            except FusionInputError as exc:
+                raise self._err(str(exc)) from None
         times = {s: r.time for s, r in reports.items() if r.time is not None}
         if len(set(times.values())) > 1:
             raise self._err(f"reports carry different times {times}; pass time= to stamp "

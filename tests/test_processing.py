@@ -348,3 +348,16 @@ def test_bad_reports_are_named():
     low = fo.ProcessingNode(["a", "b"], dims=[2], **GOOD)
     with pytest.raises(fo.FusionInputError, match=r"dims \[2\] out of range .* n = 2"):
         low.step({"a": fo.Estimates(np.zeros((1, 2)), np.eye(2)[None])})
+
+
+def test_a_step_refused_for_its_time_changes_nothing():
+    """Regression: time was checked only when the fused Estimates were built, after the
+    ids were handed out, so the refused step used up fused id 1."""
+    def est(x, i):
+        return fo.Estimates(np.array([[x, 0.0]]), np.eye(2)[None], [i])
+
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0)
+    assert node.step({"a": est(0.0, 1), "b": est(0.0, 1)}).ids.tolist() == [0]
+    with pytest.raises(fo.FusionInputError, match="time must be a finite real number"):
+        node.step({"a": est(100.0, 20), "b": est(100.0, 20)}, time=float("nan"))
+    assert node.step({"a": est(300.0, 50), "b": est(300.0, 50)}).ids.tolist() == [1]
