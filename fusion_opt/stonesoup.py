@@ -32,7 +32,7 @@ does not.
 from __future__ import annotations
 
 import numbers
-from collections.abc import Hashable, Iterable
+from collections.abc import Hashable, Iterable, Mapping
 from datetime import datetime, timedelta
 from functools import lru_cache
 
@@ -51,6 +51,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 from . import BACKENDS, FusionInputError, FusionResult, fuse
 from .estimates import Estimates
+from .validation import hashable, real_array
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]
@@ -87,7 +88,11 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
             or not np.isfinite(seconds):
         raise FusionInputError(f"seconds must be a finite real number or None, got {seconds!r}")
     _check_epoch(epoch)
-    return epoch + timedelta(seconds=float(seconds))
+    try:
+        return epoch + timedelta(seconds=float(seconds))
+    except OverflowError:  # beyond datetime's years 1..9999
+        raise FusionInputError(f"seconds = {seconds!r} after {epoch} is beyond the dates a "
+                               "datetime holds (years 1 to 9999)") from None
 
 
 def _check_epoch(epoch) -> None:
@@ -112,12 +117,16 @@ class TrackIds:
 
     def int_id(self, track_id: Hashable) -> int:
         """The integer bound to Stone Soup id `track_id` (bound now if new)."""
+        if not hashable(track_id):
+            raise FusionInputError(f"track id {track_id!r} must be hashable (a string)")
         if track_id not in self._to_int:
             self._bind(track_id, self._next)
         return self._to_int[track_id]
 
     def track_id(self, int_id: int) -> Hashable:
         """The Stone Soup id bound to integer `int_id` (str(int_id), bound now, if new)."""
+        if isinstance(int_id, bool) or not isinstance(int_id, numbers.Integral):
+            raise FusionInputError(f"int_id must be an integer, got {int_id!r}")
         int_id = int(int_id)
         if int_id not in self._to_str:
             self._bind(str(int_id), int_id)
@@ -140,10 +149,11 @@ class TrackIds:
 
 # --- conversions -----------------------------------------------------------------------------
 
-def _gaussian_summary(items, name: str):
+def _gaussian_summary(items, name: str, one_time: bool = True):
     """(means (m, n), covs (m, n, n), common timestamp, the Tracks or None) of a sequence of
-    states or of Tracks."""
-    if isinstance(items, str | bytes) or not isinstance(items, Iterable):
+    states or of Tracks; their timestamps may differ only if not one_time (then the first
+    is returned)."""
+    if isinstance(items, str | bytes | Mapping) or not isinstance(items, Iterable):
         raise FusionInputError(f"{name} must be a sequence of Stone Soup states or Tracks, got "
                                f"{type(items).__name__}")
     items = list(items)
@@ -161,7 +171,7 @@ def _gaussian_summary(items, name: str):
                                    f"{name}[0] has mean {means[0].shape}")
     stamps = [s.timestamp for s in states]
     for i, t in enumerate(stamps):
-        if t != stamps[0]:
+        if one_time and t != stamps[0]:
             raise FusionInputError(f"{name}[{i}] is at {t} but {name}[0] at {stamps[0]}: the "
                                    f"states of one Estimates share one time")
     return np.stack(means), np.stack(covs), stamps[0], items if tracks[0] else None
@@ -177,11 +187,8 @@ def _mean_covar(state, name: str) -> tuple[np.ndarray, np.ndarray]:
     if not (hasattr(state, "mean") and hasattr(state, "covar")):
         raise FusionInputError(f"{name} ({type(state).__name__}) has no Gaussian summary "
                                f"(mean and covar)")
-    try:
-        mean = np.asarray(state.mean, dtype=float)
-        covar = np.asarray(state.covar, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise FusionInputError(f"{name}: mean and covar must be real arrays ({exc})") from None
+    mean = real_array(state.mean, f"{name}'s mean")  # a complex one is refused, not cut
+    covar = real_array(state.covar, f"{name}'s covar")
     if mean.ndim not in (1, 2) or (mean.ndim == 2 and mean.shape[1] != 1):
         raise FusionInputError(f"{name} has a mean of shape {mean.shape}, not (n, 1)")
     return mean.reshape(-1), covar
@@ -193,9 +200,13 @@ def to_estimates(items, *, epoch: datetime = EPOCH, node: Hashable | None = None
 
     Row i is items[i] (a Track: its latest state). ids: for Tracks, `track_ids.int_id(track.id)`
     (a fresh TrackIds if None: 0, 1, ... in the given order); for states 0, 1, ....
-    time = seconds from `epoch` to the common timestamp; node is stored as given.
+    time = seconds from `epoch` to the common timestamp; node is stored as given. Covariances
+    are symmetrised, as every Estimates' are: one asymmetric by rounding (a Kalman update
+    leaves a few ulps) comes back as (P + P^T) / 2.
     """
     means, covs, stamp, tracks = _gaussian_summary(items, "items")
+    if track_ids is not None and not isinstance(track_ids, TrackIds):
+        raise FusionInputError(f"track_ids must be a TrackIds, got {type(track_ids).__name__}")
     if tracks is not None:
         track_ids = TrackIds() if track_ids is None else track_ids
         ids = [track_ids.int_id(t.id) for t in tracks]
@@ -288,7 +299,7 @@ class OptimalChernoffUpdater(Updater):
     def fuse_pair(self, measurement, prediction) -> FusionResult:
         """Optimal CI of [measurement, prediction] (states with mean and covar)."""
         means, covs, _, _ = _gaussian_summary([measurement, prediction],
-                                              "[measurement, prediction]")
+                                              "[measurement, prediction]", one_time=False)
         return fuse(means, covs, method="ci", criterion=self.criterion, backend=self.backend)
 
     @lru_cache  # noqa: B019 - as ChernoffUpdater: a repeated (prediction, model) is not re-solved
@@ -363,6 +374,8 @@ class StoneSoupTracker:
         if isinstance(ndim, bool) or not isinstance(ndim, numbers.Integral) or ndim < 1:
             raise FusionInputError(f"ndim must be an integer >= 1, got {ndim!r}")
         _check_epoch(epoch)
+        if node is not None and not hashable(node):
+            raise FusionInputError(f"node must be hashable (a name), got {node!r}")
         self.tracker, self.ndim, self.epoch, self.node = tracker, int(ndim), epoch, node
         self.track_ids = TrackIds()
         self._steps = None
@@ -384,7 +397,12 @@ class StoneSoupTracker:
                 except (AttributeError, TypeError) as exc:
                     raise FusionInputError(f"scan is None but the tracker cannot be iterated "
                                            f"by itself ({exc}); give (time, detections)") from None
-            return next(self._steps)
+            step = next(self._steps)
+            if not (isinstance(step, tuple | list) and len(step) == 2
+                    and isinstance(step[1], Iterable)):
+                raise FusionInputError(f"the tracker's steps must be (time, tracks) pairs, got "
+                                       f"{type(step).__name__}")
+            return step
         if not (isinstance(scan, tuple) and len(scan) == 2):
             raise FusionInputError(f"scan must be None or (time, detections), got "
                                    f"{type(scan).__name__}")
@@ -392,12 +410,19 @@ class StoneSoupTracker:
             raise FusionInputError("scan (time, detections) needs a Stone Soup tracker with "
                                    "update_tracker; this one only iterates: give scan None")
         time, detections = scan
+        if isinstance(detections, str | bytes) or not isinstance(detections, Iterable):
+            raise FusionInputError(f"scan's detections must be a collection of Stone Soup "
+                                   f"detections, got {type(detections).__name__}")
         if not isinstance(time, datetime):
             time = to_datetime(time, self.epoch)
         return self.tracker.update_tracker(time, set(detections))
 
     def _estimates(self, time, tracks) -> Estimates:
         seconds = to_seconds(time, self.epoch)
+        tracks = list(tracks)
+        if not all(isinstance(t, Track) for t in tracks):
+            raise FusionInputError("the tracker's tracks must be Stone Soup Tracks, got "
+                                   f"{sorted({type(t).__name__ for t in tracks})}")
         states = {t: s for t in tracks if (s := _state_at(t, time)) is not None}
         new = [t for t in states if t.id not in self.track_ids]
         for t in sorted(new, key=lambda t: tuple(np.asarray(states[t].mean, float).ravel())):

@@ -458,3 +458,43 @@ def test_a_network_mixes_a_stone_soup_tracker_and_one_of_ours():
             np.testing.assert_allclose(out["fusion"].covs[0], ref.cov, rtol=1e-12)
             fused_steps += 1
     assert fused_steps >= 8
+
+
+def _gaussian(mean, t=T0):
+    return GaussianState(np.array(mean).reshape(-1, 1), np.eye(len(mean)), timestamp=t)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: fs.to_estimates([GaussianState(np.array([[1 + 1j], [2]]), np.eye(2),
+                                            timestamp=T0)]), "got complex numbers"),
+    (lambda: fs.to_datetime(1e12), "beyond the dates a datetime holds"),
+    (lambda: fs.to_states(fo.Estimates(np.zeros((1, 2)), np.eye(2)[None], time=1e15)),
+     "beyond the dates"),
+    (lambda: fs.StoneSoupTracker([(T0, [_gaussian([1.0, 2.0])])], ndim=2).step(),
+     "must be Stone Soup Tracks, got \\['GaussianState'\\]"),
+    (lambda: fs.StoneSoupTracker([T0], ndim=2).step(), "must be \\(time, tracks\\) pairs"),
+    (lambda: fs.to_estimates([Track([_gaussian([1.0, 2.0])], id=["x"])]), "must be hashable"),
+    (lambda: fs.to_estimates([Track([_gaussian([1.0, 2.0])])], track_ids={}),
+     "track_ids must be a TrackIds"),
+    (lambda: fs.TrackIds().track_id(1.7), "int_id must be an integer"),
+    (lambda: fs.StoneSoupTracker([], ndim=2, node=[1]), "node must be hashable")])
+def test_adapter_refuses_by_name(call, match):
+    """Regression: a complex mean lost its imaginary part (a ComplexWarning only); the
+    others raised OverflowError, AttributeError, TypeError or silently made '1' of 1.7."""
+    with pytest.raises(fo.FusionInputError, match=match):
+        call()
+
+
+def test_optimal_chernoff_updater_takes_a_measurement_of_another_time():
+    """Regression: a prediction and a measurement of different timestamps were refused
+    ("the states of one Estimates share one time"); ChernoffUpdater fuses them, and the
+    update is stamped with the measurement's time (its docstring)."""
+    model = LinearGaussian(ndim_state=2, mapping=(0, 1), noise_covar=np.eye(2))
+    up = fs.OptimalChernoffUpdater(measurement_model=model)
+    pred = GaussianStatePrediction(np.array([[1.0], [2.0]]), 2 * np.eye(2), timestamp=T0)
+    later = T0 + timedelta(seconds=1)
+    det = GaussianDetection(np.array([[1.5], [2.5]]), np.eye(2), timestamp=later,
+                            measurement_model=model)
+    update = up.update(SingleHypothesis(pred, det))
+    assert update.timestamp == later and update.metadata["omega"] == 1.0  # I beats 2 I
+    np.testing.assert_array_equal(update.state_vector.ravel(), [1.5, 2.5])
