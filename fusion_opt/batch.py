@@ -24,4 +24,4 @@ def fuse_batch(means, covs, method="bci", criterion="trace", backend=None,
                **method_args) -> BatchFusionResult:
     """Fuse B problems of N estimates each: means (B, N, n), covs (B, N, n, n)."""
     req = core.request(method, criterion, backend, dict(method_args))
-    return core.run(*core.arrays(means, covs, True), req, True)
+    return core.run(*core.arrays(means, covs, True, req=req), req, True)

@@ -43,7 +43,7 @@ from .assemble import assemble
 from .backends import BACKENDS, EXACT, REGISTRY, newton
 from .detection import detection_split
 from .exact import fuse_exact
-from .limits import conic_bytes, limits, working_bytes
+from .limits import batch_bytes, conic_bytes, limits, working_bytes
 from .prepare import (
     ASYMMETRIC,
     COVS_NONFINITE,
@@ -155,9 +155,10 @@ def _request(method, criterion, backend, args: dict) -> Request:
     return Request(method, criterion, backend, polish, args)
 
 
-def arrays(means, covs, batch: bool, names: Names = _NAMES):
+def arrays(means, covs, batch: bool, names: Names = _NAMES, req: Request | None = None):
     """means (B, N, n), covs (B, N, n, n) as C-contiguous float arrays (a single problem
-    gains a leading axis of 1); shapes checked by name."""
+    gains a leading axis of 1); shapes checked by name, and, given the request, the
+    memory limits before anything is copied."""
     means, covs = real_array(means, names.means), real_array(covs, names.covs)
     lead = 2 if batch else 1
     shape = means.shape
@@ -165,6 +166,9 @@ def arrays(means, covs, batch: bool, names: Names = _NAMES):
         raise _shape_error(means, covs, batch, names)
     if not batch:
         means, covs = means[None], covs[None]
+    if req is not None:
+        B, N, n = means.shape
+        check_memory(req, n, N, B)
     return _writable(means), _writable(covs)
 
 
@@ -314,7 +318,6 @@ def _prepare(means, covs, q, E, a, names, batch):
 def _exact(req, means, covs, q, E, a, names, batch):
     """newton and closed-form: one compiled call; a problem whose certificate is not
     within OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
-    check_memory(req, covs.shape[2], covs.shape[1])
     t0 = time.perf_counter()
     code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
                       a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
@@ -324,7 +327,7 @@ def _exact(req, means, covs, q, E, a, names, batch):
     if (a.stats[0, 2] if len(a.stats) == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
         _rescue(req, means, covs, q, E, a)
     if code < 0:
-        raise _overflow()
+        raise _overflow(a, batch)
     return _ci_output(a, time.perf_counter() - t0, 0)
 
 
@@ -333,7 +336,6 @@ def _conic(req, means, covs, q, E, a, names, batch):
     Newton polish from its weights, and the fused estimates."""
     B, N, n = means.shape
     _prepare(means, covs, q, E, a, names, batch)
-    check_memory(req, n, N)
     t0 = time.perf_counter()
     Ys, M = np.empty((B, N, n, n)), np.empty((B, n, n))
     conic_data(a.F, Ys, M)
@@ -344,7 +346,7 @@ def _conic(req, means, covs, q, E, a, names, batch):
     solve_time = time.perf_counter() - t0
     if not assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, req.trace, a.mean,
                     a.cov, a.stats):
-        raise _overflow()
+        raise _overflow(a, batch)
     return _ci_output(a, solve_time, polish_iters)
 
 
@@ -396,22 +398,31 @@ def _ci_output(a, solve_time, polish_iters):
     return a.W, a.mean, a.cov, obj, gap, status, iters, solve_time, polish_iters, "ci_weights"
 
 
-def check_memory(req, n, N):
-    """Refuses (FusionSolverError) a problem whose work arrays or conic solve would
-    exceed fusion_opt.limits."""
-    need = working_bytes(n, N, req.backend)
-    if need > limits.working_memory:
-        raise FusionSolverError(req.backend, "memory_limit", _memory(
-            "the weight solver's work arrays", need, n, N, "working_memory"))
-    if req.backend in _CONIC and conic_bytes(n, N) > limits.conic_memory:
-        raise FusionSolverError(req.backend, "memory_limit", _memory(
-            "Clarabel's KKT system", conic_bytes(n, N), n, N, "conic_memory"))
+def check_memory(req, n, N, B=1):
+    """Refuses (FusionSolverError) B problems whose arrays, weight solver's work arrays or
+    conic solve would exceed fusion_opt.limits."""
+    checks = [(f"the arrays of {B} problem{'s' * (B != 1)}", batch_bytes(B, N, n),
+               "working_memory")]
+    if req.backend is not None:
+        checks.append(("the weight solver's work arrays", working_bytes(n, N, req.backend),
+                       "working_memory"))
+    if req.backend in _CONIC:
+        checks.append(("Clarabel's KKT system", conic_bytes(n, N), "conic_memory"))
+    for what, need, limit in checks:
+        if need > getattr(limits, limit):
+            raise FusionSolverError(req.backend or req.method, "memory_limit",
+                                    _memory(what, need, n, N, limit))
 
 
-def _overflow() -> FusionInputError:
+def _overflow(a, batch: bool) -> FusionInputError:
+    """What of which problem overflowed: its objective (a trace of 1e308 I) or the
+    estimate."""
+    estimate = np.isfinite(a.mean).all(axis=1) & np.isfinite(a.cov).all(axis=(1, 2))
+    b = int(np.flatnonzero(~(estimate & np.isfinite(a.stats[:, 0])))[0])
+    what = "objective (its trace)" if estimate[b] else "estimate"
     return FusionInputError(
-        "the fused estimate overflows float64 (covariances or means too large, or MBCI "
-        "scales too small for the result to be represented)")
+        f"{f'problem {b}: ' if batch else ''}the fused {what} overflows float64 "
+        "(covariances or means too large, or MBCI scales too small for it to be represented)")
 
 
 def _rules(req, means, covs, k, batch):

@@ -39,8 +39,8 @@ def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionR
 
 def ci(m_a, P_a, m_b, P_b, criterion="trace", backend=None, *, polish=True) -> FusionResult:
     """Pairwise covariance intersection of (m_a (n,), P_a (n, n)) and (m_b, P_b)."""
-    means, covs = _pair(m_a, P_a, m_b, P_b)
     req = core.request("ci", criterion, backend, {"polish": polish})
+    means, covs = _pair(m_a, P_a, m_b, P_b, req)
     return core.run(means, covs, req, False, _PAIR)
 
 
@@ -74,7 +74,7 @@ def fuse(means, covs, method="bci", criterion="trace", backend=None, **method_ar
     unpolished. Anything else is refused by name.
     """
     req = core.request(method, criterion, backend, dict(method_args))
-    return core.run(*core.arrays(means, covs, False), req, False)
+    return core.run(*core.arrays(means, covs, False, req=req), req, False)
 
 
 def optimality_gap(covs, weights, criterion="trace") -> float:
@@ -114,7 +114,7 @@ def warmup(n: int, N: int, criterion="trace", backend=None) -> float:
     return time.perf_counter() - t0
 
 
-def _pair(m_a, P_a, m_b, P_b) -> tuple[np.ndarray, np.ndarray]:
+def _pair(m_a, P_a, m_b, P_b, req) -> tuple[np.ndarray, np.ndarray]:
     """means (1, 2, n) and covs (1, 2, n, n) of a pair, shapes checked by name: new
     C-contiguous arrays, as `core.arrays` gives (whose checks and copies they need not pay
     again: a third of the Python cost of a small `ci`)."""
@@ -132,6 +132,7 @@ def _pair(m_a, P_a, m_b, P_b) -> tuple[np.ndarray, np.ndarray]:
                                f"of length n = {n}, got {P_a.shape}")
     if n == 0:
         raise FusionInputError("m_a and m_b are empty (n = 0)")
+    core.check_memory(req, n, 2)
     means, covs = np.empty((1, 2, n)), np.empty((1, 2, n, n))
     means[0, 0], means[0, 1], covs[0, 0], covs[0, 1] = m_a, m_b, P_a, P_b
     return means, covs

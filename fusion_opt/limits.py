@@ -14,7 +14,8 @@ conic_memory: the estimated memory of a conic solve by "clarabel" / "clarabel-di
 working_memory: the estimated memory of the native solvers' work arrays for one problem:
     the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles, and five
     stacks of N n x n matrices (factors, their QR, a subproblem's factors); for "slsqp"
-    also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB).
+    also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB); and,
+    for any method, a whole batch's arrays (`batch_bytes`).
 array_memory: the estimated memory of the arrays a tracker (its particles and a step's
     temporaries) or a scenario simulator (a run's truth and measurements) allocates,
     checked when it is configured.
@@ -48,6 +49,14 @@ def conic_bytes(n: int, N: int) -> float:
     """Estimated bytes of a Clarabel solve for state dimension n and N nodes."""
     psd = n * (2 * n + 1)
     return 8.0 * (4.0 * psd * psd + 4.0 * N * psd)
+
+
+def batch_bytes(B: int, N: int, n: int) -> float:
+    """Estimated bytes of the arrays of a batch of B problems (B = 1: one fusion): copies
+    of its means and covariances, their factors, a rule's scaled covariances and the
+    results, about 4 n^2 + 2 n + 4 doubles a node; checked against working_memory before
+    anything is copied."""
+    return 8.0 * B * N * (4.0 * n * n + 2.0 * n + 4.0)
 
 
 def working_bytes(n: int, N: int, backend: str | None = None) -> float:

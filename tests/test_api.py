@@ -245,3 +245,24 @@ def test_a_node_of_condition_beyond_the_limit_is_refused_at_once():
     with pytest.raises(fo.FusionInputError,
                        match=r"covs of node 0 is numerically singular: eigenvalues 1e-300 to 1"):
         fo.bci(np.zeros((1000, 3)), covs)
+
+
+@pytest.mark.parametrize("method", ["bci", "naive"])
+def test_a_batch_beyond_memory_is_refused_before_anything_is_copied(method):
+    """Regression: fuse_batch of 10^8 broadcast problems copied 3 GB for 7.5 s, then raised
+    numpy's MemoryError; fuse at n = 10000 copied 1.6 GB before its limit was checked."""
+    B = 10**8
+    means = np.broadcast_to(np.zeros(2), (B, 2, 2))
+    covs = np.broadcast_to(np.eye(2), (B, 2, 2, 2))
+    with pytest.raises(fo.FusionSolverError, match=r"the arrays of 100000000 problems"):
+        fo.fuse_batch(means, covs, method)
+
+
+def test_an_overflow_names_the_problem_and_what_overflowed():
+    """Regression: "the fused estimate overflows" for a batch, without the problem, where
+    only the trace of 1e308 I (the objective) overflows."""
+    covs = np.tile(np.eye(2), (3, 2, 1, 1))
+    covs[2] *= 1e308
+    with pytest.raises(fo.FusionInputError,
+                       match=r"^problem 2: the fused objective \(its trace\) overflows"):
+        fo.fuse_batch(np.zeros((3, 2, 2)), covs)
