@@ -18,7 +18,7 @@ class Status(StrEnum):
     a str, so `r.status == "optimal"` works.
 
     OPTIMAL: CI weights whose certificate proves them optimal (relative gap within the
-        solver tolerance of `fusion.OPTIMAL_RTOL`).
+        solver tolerance of `core.OPTIMAL_RTOL`).
     OPTIMAL_INACCURATE: the best weights found, whose certificate (reported in `gap`)
         falls short of that tolerance.
     CLOSED_FORM: a rule without a weight optimisation (naive, known-cross, fast-ci, ifci,

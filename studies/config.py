@@ -71,7 +71,7 @@ def _user_file(path, defaults: dict) -> dict:
     unknown = sorted(set(user) - set(defaults))
     if unknown:
         raise ConfigError(f"--config {path}: unknown field(s) {unknown}; "
-                          f"known: {sorted(defaults)}{renamed_hint(unknown)}")
+                          f"known: {sorted(defaults)}{renamed_hint(unknown, defaults)}")
     return user
 
 
@@ -81,9 +81,16 @@ RENAMED = {  # an older or library-side name -> the field a configuration uses
 }
 
 
-def renamed_hint(unknown) -> str:
-    """' (chi_inv is now growth, ...)' for the unknown names that were renamed, else ''."""
-    hints = [f"{k} is now {RENAMED[k]}" for k in unknown if k in RENAMED]
+def renamed_hint(unknown, known=None) -> str:
+    """' (chi_inv is now growth, ...)' for the unknown names that were renamed, else ''; a
+    table that has no field of the new name (nnode's [static]: growth_true and
+    growth_assumed) is given its growth fields instead."""
+    def new_name(k):
+        growths = sorted(f for f in (known or ()) if f.startswith("growth"))
+        if known is None or RENAMED[k].split()[0] in known or not growths:
+            return RENAMED[k]
+        return " or ".join(growths)
+    hints = [f"{k} is now {new_name(k)}" for k in unknown if k in RENAMED]
     return f" ({'; '.join(hints)}: the covariance growth over a missed detection, the " \
            "paper's chi^-1 >= 1)" if hints else ""
 
@@ -107,7 +114,8 @@ def fields(table, where: str, required: Collection[str],
     unknown = sorted(set(table) - set(required) - set(optional))
     if unknown:
         raise ConfigError(f"{label} has unknown field(s) {unknown}; known: "
-                          f"{sorted({*required, *optional})}{renamed_hint(unknown)}")
+                          f"{sorted({*required, *optional})}"
+                          f"{renamed_hint(unknown, {*required, *optional})}")
     missing = sorted(set(required) - set(table))
     if missing:
         raise ConfigError(f"{label} lacks field(s) {missing}")
@@ -215,7 +223,7 @@ def build(cls, table: dict, section: str):
     unknown = sorted(set(table) - set(defaults))
     if unknown:
         raise ConfigError(f"[{section}] has unknown field(s) {unknown}; known: "
-                          f"{sorted(defaults)}{renamed_hint(unknown)}")
+                          f"{sorted(defaults)}{renamed_hint(unknown, defaults)}")
     for key, value in table.items():
         _like(f"{section}.{key}", value, defaults[key])
     try:

@@ -171,7 +171,7 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
                                   f"{list(STATIC)}); give a table {{field, values, fixed}}"
-                                  + configs.renamed_hint([name]))
+                                  + configs.renamed_hint([name], STATIC))
     field, values, fixed = sweep_spec(name, spec)
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)

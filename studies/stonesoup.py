@@ -538,8 +538,9 @@ def figure_data(config: dict, sim: Simulation, rows: dict[str, Fused]) -> dict:
 # ----------------------------------------------------------------------------- report
 
 def report(config: dict, results: list[dict], out: Path, figure: dict | None) -> None:
-    """stonesoup.md, its tables as stonesoup.csv and stonesoup_paired.csv, the OSPA-over-time
-    figure from every run, and the scenario figure of run FIGURE_RUN (if stored)."""
+    """stonesoup.md, its tables as stonesoup.csv, stonesoup_paired.csv and
+    stonesoup_agreement.csv, the OSPA-over-time figure from every run, and the scenario
+    figure of run FIGURE_RUN (if stored)."""
     out = Path(out)
     sc = scenario(config)
     sensors, rules = sensor_names(sc), list(config["rules"])
@@ -554,6 +555,7 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     stats.write_rows(out / "stonesoup_paired.csv", [
         {"rule": rule, "measure": col, **d} for rule, cols in paired.items()
         for col, d in cols.items()])
+    stats.write_rows(out / "stonesoup_agreement.csv", _agreement_rows(results))
     lines = _markdown(config, summary, paired, results)
     _ospa_figure(config, results, out / "stonesoup_ospa.png")
     lines += ["", "![OSPA over time per rule](stonesoup_ospa.png)"]
@@ -624,9 +626,24 @@ def _describe(spec: dict) -> str:
     return f"fuse_states {method}" + (f" ({spec['criterion']})" if "criterion" in spec else "")
 
 
+def _agreement_rows(results) -> list[dict]:
+    """Per row: our OSPA and GOSPA and Stone Soup's OSPAMetric and GOSPAMetric (means over
+    the runs of the run means), and how often and by how much they differ over every scan
+    of every run."""
+    rows = []
+    for row in results[0]:
+        v = [r[row] for r in results]
+        rows.append({"row": row, **{c: float(np.mean([x[c] for x in v]))
+                                    for c in ("ospa", "ss_ospa", "gospa", "ss_gospa")},
+                     "scans_ospa_differs": sum(x["ospa_scans_differ"] for x in v),
+                     "scans": sum(len(x["ospa_t"]) for x in v),
+                     "max_ospa_diff": max(x["ospa_max_diff"] for x in v),
+                     "max_gospa_diff": max(x["gospa_max_diff"] for x in v)})
+    return rows
+
+
 def _agreement(config, results) -> list[str]:
-    """Our OSPA and GOSPA beside Stone Soup's OSPAMetric and GOSPAMetric, per row, and how
-    often and by how much they differ over every scan of every run."""
+    """The table of `_agreement_rows`, with its note."""
     m = config["metrics"]
     lines = [f"Our metrics beside Stone Soup's metric generators on the same estimates (c = "
              f"{m['cutoff']} m, p = {m['order']}; run means, mean over runs). GOSPAMetric "
@@ -635,14 +652,12 @@ def _agreement(config, results) -> list[str]:
              "| row | OSPA ours | OSPA Stone Soup | GOSPA ours | GOSPA Stone Soup | scans where "
              "OSPA differs | max OSPA diff (m) | max GOSPA diff (m) |",
              "|---|---|---|---|---|---|---|---|"]
-    for row in results[0]:
-        v = [r[row] for r in results]
+    for r in _agreement_rows(results):
         lines.append(
-            f"| {row} | " + " | ".join(f"{np.mean([x[c] for x in v]):.6g}" for c in
-                                       ("ospa", "ss_ospa", "gospa", "ss_gospa"))
-            + f" | {sum(x['ospa_scans_differ'] for x in v)} of "
-            f"{sum(len(x['ospa_t']) for x in v)} | {max(x['ospa_max_diff'] for x in v):.2g} | "
-            f"{max(x['gospa_max_diff'] for x in v):.2g} |")
+            f"| {r['row']} | " + " | ".join(f"{r[c]:.6g}" for c in
+                                            ("ospa", "ss_ospa", "gospa", "ss_gospa"))
+            + f" | {r['scans_ospa_differs']} of {r['scans']} | {r['max_ospa_diff']:.2g} | "
+            f"{r['max_gospa_diff']:.2g} |")
     return lines
 
 

@@ -70,6 +70,8 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[static]\ngrowth_assumed = 0.5\n", "static.growth_assumed must be a finite "
      "number >= 1"),
     ("nnode", "[static]\nchi_inv_true = 1.5\n", "(chi_inv_true is now growth_true"),
+    # [static] has no field growth: its growth fields are named instead
+    ("nnode", "[static]\nchi_inv = 1.5\n", "(chi_inv is now growth_assumed or growth_true"),
     ("nnode", "[static]\nrho = nan\n", "static.rho must be a finite number >= 0 and <= 1"),
     ("nnode", "runs = -1\n", f"{RUNS} -1"),
     ("nnode", 'backend = "gurobi"\n', "backend must be one of ['newton'"),

@@ -25,8 +25,8 @@ runs = 2
 [scenario]
 steps = 12
 """
-OUTPUTS = ("stonesoup.md", "stonesoup.csv", "stonesoup_paired.csv", "stonesoup_ospa.png",
-           "stonesoup_scenario.png", "meta.json")
+OUTPUTS = ("stonesoup.md", "stonesoup.csv", "stonesoup_paired.csv", "stonesoup_agreement.csv",
+           "stonesoup_ospa.png", "stonesoup_scenario.png", "meta.json")
 
 
 def _config(**scenario) -> dict:
@@ -294,6 +294,9 @@ def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
     assert csv[0].startswith("row,ospa_mean,ospa_low,ospa_high") and len(csv) == 1 + 3 + 7
     paired = (folder / "stonesoup_paired.csv").read_text().splitlines()
     assert len(paired) == 1 + 6 * len(study.PAIRED)
+    # the agreement table's CSV: a row per sensor and rule, the markdown's numbers
+    agreement = (folder / "stonesoup_agreement.csv").read_text().splitlines()
+    assert agreement[0].startswith("row,ospa,ss_ospa,gospa,ss_gospa") and len(agreement) == 11
     (folder / "stonesoup.md").unlink()
     (folder / "stonesoup_scenario.png").unlink()
     assert main(["report", "stonesoup", "--out", str(tmp_path)]) == 0
