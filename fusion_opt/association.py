@@ -144,7 +144,9 @@ def check_dims(dims, n: int | None = None) -> list[int] | None:
     if (not dims or any(isinstance(d, bool) or not isinstance(d, numbers.Integral) for d in dims)
             or len(set(dims)) != len(dims)):
         raise FusionInputError(f"dims must be distinct integer state components, got {dims!r}")
-    if any(d < 0 or (n is not None and d >= n) for d in dims):
+    if any(d < 0 for d in dims):
+        raise FusionInputError(f"dims must be state components >= 0, got {dims}")
+    if n is not None and any(d >= n for d in dims):
         raise FusionInputError(f"dims {dims} out of range for a state of dimension n = {n}")
     return [int(d) for d in dims]
 

@@ -124,7 +124,7 @@ def test_no_reports_no_groups():
     (dict(threshold=np.inf), "threshold"),
     (dict(threshold=1.0, method="magic"), "method"),
     (dict(threshold=1.0, dims=[0, 2]), r"dims \[0, 2\] out of range .* n = 2"),
-    (dict(threshold=1.0, dims=[-1]), "dims"),
+    (dict(threshold=1.0, dims=[-1]), r"dims must be state components >= 0, got \[-1\]"),
     (dict(threshold=1.0, dims=[0.5]), "dims"),
     (dict(threshold=1.0, dims="xy"), "dims"),
     (dict(threshold=1.0, dims=[]), "dims"),
