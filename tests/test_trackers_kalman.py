@@ -264,3 +264,14 @@ def test_a_step_that_overflows_is_refused_and_the_state_kept():
     assert kf.steps == 0
     np.testing.assert_array_equal(kf.cov, I)
     np.testing.assert_array_equal(kf.mean, np.zeros(2))
+
+
+def test_cross_covariance_step_refuses_what_is_no_joint_covariance():
+    """Regression: C = -1 raised LinAlgError, C = -2 returned 2, an asymmetric C was
+    averaged silently and C = 1e308 returned inf."""
+    model = models.LinearGaussian(np.eye(1), np.eye(1), np.eye(1), np.eye(1))
+    for C, match in ((-np.ones((1, 1, 1, 1)), r"C\[0, 0\], filter 0's covariance"),
+                     (np.array([[[[1.0]], [[5.0]]], [[[-3.0]], [[1.0]]]]), "symmetric"),
+                     (1e308 * np.ones((1, 1, 1, 1)), "overflows float64")):
+        with pytest.raises(FusionInputError, match=match):
+            kalman.cross_covariance_step(C, np.zeros(C.shape[0], dtype=bool), model)

@@ -82,7 +82,7 @@ def test_discretize_rejects_bad_input():
     F, L = models.turn_F(0.0), models.turn_L()
     with pytest.raises(ValueError, match="dt must be a finite positive"):
         models.discretize(F, L, np.eye(2), 0.0)
-    with pytest.raises(ValueError, match="L must have 4 rows"):
+    with pytest.raises(ValueError, match=r"L must be \(4, s\) with s >= 1"):
         models.discretize(F, L.T, np.eye(2), 0.1)
     with pytest.raises(ValueError, match="F must be square"):
         models.discretize(F[:3], L, np.eye(2), 0.1)
@@ -102,3 +102,25 @@ def test_a_step_whose_model_overflows_names_dt():
         models.turn_model(0.0, 1.0, 1.0, 1e300)
     with pytest.raises(FusionInputError, match="A must be square with n >= 1"):
         models.LinearGaussian(*(np.zeros((0, 0)),) * 4)
+
+
+@pytest.mark.parametrize("F, L, dt", [
+    ([[0.0, 1.0], [0.0, -50.0]], [[0.0], [1.0]], 1.0),   # Q was not even PSD
+    ([[-20.0, 100.0], [0.0, -20.0]], np.eye(2), 1.0),    # Q[0, 0] 121.6 for 0.3375
+    ([[0.0, 1.0], [0.0, -20.0]], [[0.0], [1.0]], 5.0)])  # relative error 4e25
+def test_discretize_of_a_stiff_model_against_quadrature(F, L, dt):
+    """Regression: Van Loan's exponential holds expm(-F dt), huge for a stable F over a
+    long step, which cancelled in Q; now over dt / 2^s, doubled s times. Reference: the
+    integral of expm(F t) L Qc L^T expm(F t)^T over [0, dt] by scipy's quad_vec."""
+    F, L = np.array(F), np.array(L, dtype=float)
+    Qc = np.eye(L.shape[1])
+    A, Q = models.discretize(F, L, Qc, dt)
+    ref = quad_vec(lambda t: expm(F * t) @ L @ Qc @ L.T @ expm(F * t).T, 0.0, dt,
+                   epsabs=1e-14, epsrel=1e-12)[0]
+    np.testing.assert_allclose(Q, ref, rtol=1e-10, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_allclose(A, expm(F * dt), rtol=1e-12, atol=1e-15)
+    # a very stable mode is no longer refused as overflowing: A = 0, Q = Qc / (2 lambda)
+    A, Q = models.discretize(np.diag([-800.0, -1.0]), np.eye(2), np.eye(2), 1.0)
+    np.testing.assert_allclose(Q[0, 0], 1 / 1600, rtol=1e-12)
+    with pytest.raises(FusionInputError, match="too long a step for this F"):
+        models.turn_model(1e300, 0.1, 0.1, 0.05)

@@ -261,3 +261,26 @@ def test_rbmcda_refuses_non_numbers(name, bad):
         rbmcda.run([np.zeros((1, 2))], model, m0, P0, **args)
     with pytest.raises(FusionInputError, match="scans must be"):
         rbmcda.run(None, model, m0, P0, rng=np.random.default_rng(0), dt=0.01)
+
+
+def test_helpers_clock_and_streams_refuse_by_name():
+    """Regression: event_log_priors(1.5, ...) and initial_state(..., 0) gave NaN or an empty
+    state, survival(-1) NaN, a second step at dt = 1e308 was refused only after the state
+    had moved on, and a generator that cannot spawn raised TypeError in the simulators."""
+    from trackers import models, rbmcda, scenarios
+    with pytest.raises(FusionInputError, match="birth_prob must be a probability"):
+        rbmcda.event_log_priors(1.5, 0.2, 1.0)
+    with pytest.raises(FusionInputError, match="n_particles must be an integer >= 1"):
+        rbmcda.initial_state(np.zeros(4), np.eye(4), 0)
+    assert rbmcda.survival(-1.0, 2.0, 0.5) == 1.0
+    f = rbmcda.RBMCDA(models.turn_model(0, 0.1, 0.01, 0.1), np.zeros(4), np.eye(4),
+                      rng=np.random.default_rng(0), dt=1e308)
+    f.step([])
+    with pytest.raises(FusionInputError, match="past float64's times"):
+        f.step([])
+    assert f.steps == 1
+    legacy = np.random.Generator(np.random.RandomState(0)._bit_generator)
+    with pytest.raises(FusionInputError, match="rng must be able to spawn"):
+        scenarios.simulate_table1(scenarios.Table1Config(n_steps=5), legacy)
+    with pytest.raises(FusionInputError, match=r"turn_rates: turn rate 0 = 1e\+300"):
+        scenarios.CrossingConfig(turn_rates=(1e300,))

@@ -137,6 +137,7 @@ def cross_covariance_step(C, detected, model: LinearGaussian):
     if detected.dtype != bool or detected.shape != (N,):
         raise FusionInputError(f"detected must be a boolean array of shape ({N},), got "
                                f"{detected.dtype} {detected.shape}")
+    _check_joint(C)
     A, Q, H, R = model.A, model.Q, model.H, model.R
     C = A @ C @ A.T + Q  # e-_i = A e_i + q with the same q for every node
     P = C[np.arange(N), np.arange(N)]
@@ -145,7 +146,25 @@ def cross_covariance_step(C, detected, model: LinearGaussian):
     M = np.eye(n) - K @ H  # e+_i = M_i e-_i - K_i r_i
     C = M[:, None] @ C @ np.swapaxes(M, -1, -2)[None, :]
     C[np.arange(N), np.arange(N)] += K @ R @ np.swapaxes(K, -1, -2)
-    return 0.5 * (C + np.swapaxes(np.swapaxes(C, 0, 1), -1, -2)), K
+    with np.errstate(over="ignore", invalid="ignore"):  # refused just below
+        C = 0.5 * (C + np.swapaxes(np.swapaxes(C, 0, 1), -1, -2))
+    if not np.isfinite(C).all():
+        raise FusionInputError("C: the step's joint covariance overflows float64")
+    return C, K
+
+
+def _check_joint(C: np.ndarray) -> None:
+    """C (N, N, n, n) symmetric as a joint covariance (C[i, j] = C[j, i]^T, within 1e-8 of
+    its largest entry) with positive semidefinite diagonal blocks (a covariance's own)."""
+    scale = np.abs(C).max()
+    if np.abs(C - np.swapaxes(np.swapaxes(C, 0, 1), -1, -2)).max() > 1e-8 * scale:
+        raise FusionInputError("C must be symmetric: C[i, j] = C[j, i]^T")
+    N = C.shape[0]
+    low = np.linalg.eigvalsh(C[np.arange(N), np.arange(N)])[:, 0]
+    if (low < -1e-10 * scale).any():
+        i = int(np.flatnonzero(low < -1e-10 * scale)[0])
+        raise FusionInputError(f"C[{i}, {i}], filter {i}'s covariance, is not positive "
+                               f"semidefinite (smallest eigenvalue {low[i]:.3g})")
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,8 @@ from scipy.linalg import expm
 from fusion_opt import FusionInputError
 from trackers import _checks
 
+_MAX_HALVINGS = 64  # |F|_1 dt up to 2^63: each doubling of `discretize` adds rounding
+
 #: Indices of the position components in the state [x, y, vx, vy].
 POSITION = (0, 1)
 
@@ -53,26 +55,43 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretisation of dx = F x dt + L dw, E[dw dw^T] = Qc dt, over a step dt.
 
     F is (n, n), L is (n, s), Qc is (s, s) symmetric PSD, dt > 0.
-    Returns (A, Q): A = expm(F dt) (n, n), Q the (n, n) process-noise covariance (Van Loan).
+    Returns (A, Q): A = expm(F dt) (n, n), Q the (n, n) process-noise covariance.
+
+    Van Loan's block exponential holds expm(-F h), which for a stiff or stable F and a
+    long step is huge and cancels in Q = A G12 (F = [[0, 1], [0, -50]], dt = 1 gave a Q
+    that was not even PSD). So it is taken over h = dt / 2^s with |F|_1 h <= 1/2, and the
+    step is doubled s times, exactly: Q(2h) = Q(h) + A(h) Q(h) A(h)^T, A(2h) = A(h)^2
+    (s = 0, the one exponential, wherever |F|_1 dt <= 1/2, e.g. every turn model here).
     """
     F = _checks.finite_array("F", F, ndim=2)
     n = F.shape[0]
-    if F.shape != (n, n):
-        raise FusionInputError(f"F must be square, got shape {F.shape}")
+    if F.shape != (n, n) or n == 0:
+        raise FusionInputError(f"F must be square with n >= 1, got shape {F.shape}")
     L = _checks.finite_array("L", L, ndim=2)
-    if L.shape[0] != n:
-        raise FusionInputError(f"L must have {n} rows to match F, got shape {L.shape}")
+    if L.shape[0] != n or L.shape[1] == 0:
+        raise FusionInputError(f"L must be ({n}, s) with s >= 1 to match F, got shape "
+                               f"{L.shape}")
     Qc = _checks.psd_covariance("Qc", Qc, L.shape[1])
     dt = _checks.positive("dt", dt)
-
+    with np.errstate(over="ignore"):
+        s = max(0, int(np.ceil(np.log2(2.0 * np.abs(F).sum(axis=0).max() * dt)))) \
+            if np.abs(F).max() * dt > 0.0 else 0
+    if s > _MAX_HALVINGS:
+        raise FusionInputError(f"dt = {dt:g} is too long a step for this F: |F|_1 dt "
+                               f"= {np.abs(F).sum(axis=0).max() * dt:.3g} (at most "
+                               f"2^{_MAX_HALVINGS - 1})")
+    h = dt / 2.0**s
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
     M[:n, n:] = L @ Qc @ L.T
     M[n:, n:] = F.T
     with np.errstate(over="ignore", invalid="ignore"):
-        G = expm(M * dt)
+        G = expm(M * h)
         A = G[n:, n:].T
         Q = A @ G[:n, n:]
+        for _ in range(s):
+            Q = Q + A @ Q @ A.T
+            A = A @ A
     if not (np.isfinite(A).all() and np.isfinite(Q).all()):
         raise FusionInputError(f"dt = {dt:g} is too long a step for this F and Qc: its "
                                "transition or process noise overflows float64")

@@ -130,6 +130,13 @@ class RBMCDAParams(NamedTuple):
 
 def event_log_priors(birth_prob: float, clutter_prior: float, clutter_density: float):
     """(log_clutter_birth (2, 2), log_target) of RBMCDAParams from the probabilities."""
+    birth_prob = _checks.probability("birth_prob", birth_prob)
+    clutter_prior = _checks.probability("clutter_prior", clutter_prior)
+    clutter_density = _checks.positive("clutter_density", clutter_density)
+    if birth_prob == 0.0 and clutter_prior == 0.0:
+        # no target can ever be born, and a measurement may not be clutter
+        raise FusionInputError("birth_prob and clutter_prior must not both be 0: "
+                               "nothing could explain a measurement")
     with np.errstate(divide="ignore"):  # log(0) = -inf removes an option exactly
         log_pb, log_1mpb = np.log(birth_prob), np.log1p(-birth_prob)
         log_cp, log_1mcp = np.log(clutter_prior), np.log1p(-clutter_prior)
@@ -174,7 +181,8 @@ class RBMCDAReport(NamedTuple):
 def initial_state(m0: np.ndarray, P0: np.ndarray, n_particles: int,
                   capacity: int = 4) -> RBMCDAState:
     """N particles with no target, equal weights, C = capacity empty slots."""
-    N, C, n = n_particles, capacity, m0.shape[0]
+    N = _checks.positive_int("n_particles", n_particles)
+    C, n = _checks.positive_int("capacity", capacity), m0.shape[0]
     return RBMCDAState(np.broadcast_to(m0, (N, C, n)).copy(),
                        np.broadcast_to(P0, (N, C, n, n)).copy(),
                        np.zeros((N, C), dtype=bool), np.full((N, C), -1, dtype=np.int64),
@@ -182,7 +190,11 @@ def initial_state(m0: np.ndarray, P0: np.ndarray, n_particles: int,
 
 
 def _grow(s: RBMCDAState, m0, P0) -> RBMCDAState:
-    """Double the number of slots (new slots are dead and hold the prior)."""
+    """Double the number of slots (new slots are dead and hold the prior), within
+    fusion_opt.limits.array_memory."""
+    N, C, n = s.M.shape
+    _checks.fits(f"scan: {N} particles of {2 * C} target slots",
+                 8.0 * 2 * N * 2 * C * (n * n + n + 3))
     return s._replace(
         M=np.concatenate([s.M, np.broadcast_to(m0, s.M.shape)], axis=1),
         P=np.concatenate([s.P, np.broadcast_to(P0, s.P.shape)], axis=1),
@@ -193,8 +205,9 @@ def _grow(s: RBMCDAState, m0, P0) -> RBMCDAState:
 
 def survival(age, shape: float, scale: float) -> np.ndarray:
     """S(age) = P(lifetime > age) of the Gamma(shape, scale) lifetime, = Q(shape, age/scale)
-    (regularised upper incomplete gamma; equal to scipy.stats.gamma.sf, at 1/17 the cost)."""
-    return gammaincc(shape, np.asarray(age) / scale)
+    (regularised upper incomplete gamma; equal to scipy.stats.gamma.sf, at 1/17 the cost);
+    1 for a negative age (no lifetime is negative)."""
+    return gammaincc(shape, np.maximum(np.asarray(age), 0.0) / scale)
 
 
 def deaths(alive, tau, t_prev: float, t: float, shape: float, scale: float, u) -> np.ndarray:
@@ -247,6 +260,10 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
             f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
             "and the birth prior, and clutter_prior = 0 rules out clutter: no hypothesis "
             "explains it")
+    if (s.logw + log_pred).max() == -np.inf:
+        raise FusionInputError(
+            f"measurement y = {y.tolist()} leaves every particle with weight 0: no particle "
+            "explains all of this scan's measurements")
     s = s._replace(logw=s.logw + log_pred)
 
     # one Kalman update for every particle that chose a target or a birth
@@ -285,6 +302,8 @@ def extract_tracks(s: RBMCDAState, w: np.ndarray):
         n = s.M.shape[-1]
         return ids, np.zeros((0, n)), np.zeros((0, n, n))
     rows, cols = s.alive.nonzero()
+    _checks.fits(f"scan: the MAP particle's {ids.size} tracks over {rows.size} alive targets",
+                 8.0 * ids.size * rows.size * (s.M.shape[-1] + 2))
     # share[u, k]: weight of alive target k in track u's mixture (one per particle at most)
     share = (s.ids[rows, cols] == ids[:, None]) * w[rows]
     share /= share.sum(axis=1, keepdims=True)
@@ -296,6 +315,8 @@ def filter_step(s: RBMCDAState, scan: np.ndarray, p: RBMCDAParams, rng):
     """One RBMCDA step (module docstring) on the measurements ``scan`` (k, d).
     Returns (RBMCDAState, RBMCDAReport); the input state is not modified."""
     t_prev, t = s.k * p.dt, (s.k + 1) * p.dt
+    if not np.isfinite(t):
+        raise FusionInputError(f"step {s.k + 1} at dt = {p.dt:g} is past float64's times")
     alive, ids, M, P = s.alive.copy(), s.ids.copy(), s.M.copy(), s.P.copy()
     if alive.any():
         dead = deaths(alive, s.tau, t_prev, t, p.lifetime_shape, p.lifetime_scale,
@@ -358,14 +379,7 @@ class RBMCDA:
         N = _checks.positive_int("n_particles", n_particles)
         # the particles' 4 first slots and a step's temporaries (about 8 copies)
         _checks.fits(f"n_particles = {N}", 8.0 * 8 * 4 * N * (model.n**2 + model.n + 3))
-        pb = _checks.probability("birth_prob", birth_prob)
-        cp = _checks.probability("clutter_prior", clutter_prior)
-        if pb == 0.0 and cp == 0.0:
-            # no target can ever be born, and a measurement may not be clutter
-            raise FusionInputError("birth_prob and clutter_prior must not both be 0: "
-                                   "nothing could explain a measurement")
-        table, log_target = event_log_priors(
-            pb, cp, _checks.positive("clutter_density", clutter_density))
+        table, log_target = event_log_priors(birth_prob, clutter_prior, clutter_density)
         self.params = RBMCDAParams(
             model, _checks.read_only(m0), _checks.read_only(P0), _checks.positive("dt", dt),
             _checks.read_only(table), log_target,

@@ -96,6 +96,25 @@ def _propagate(x0, rates, dt, q, process_noise, rng):
     return X
 
 
+def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
+    """k independent child generators of rng (one per part of a run)."""
+    try:
+        return rng.spawn(k)
+    except TypeError:  # a bit generator made without a SeedSequence cannot spawn
+        raise FusionInputError("rng must be able to spawn streams (numpy.random.default_rng"
+                               "(seed) can); this one's bit generator has no SeedSequence"
+                               ) from None
+
+
+def _check_rates(name: str, rates, q: float, dt: float) -> None:
+    """Each turn rate (rad/s) gives a coordinated-turn step of dt that float64 holds."""
+    for i, a in enumerate(rates):
+        try:
+            discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
+        except FusionInputError as exc:
+            raise FusionInputError(f"{name}: turn rate {i} = {a!r}: {exc}") from None
+
+
 def _check_shared(cfg) -> None:
     """The fields both scenario configurations have: time grid, motion, detection, filter;
     a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
@@ -184,6 +203,7 @@ class Table1Config:
         _check_windows("turn_windows", self.turn_windows)
         _checks.probability("clutter_fraction", self.clutter_fraction)
         self.filter_model()  # dt, q and r give a model float64 holds
+        _check_rates("turn_windows", [w[2] for w in self.turn_windows], self.q, self.dt)
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
@@ -221,7 +241,7 @@ def simulate_table1(config: Table1Config, rng: np.random.Generator) -> Table1Dat
     if not isinstance(config, Table1Config):
         raise FusionInputError(f"config must be a Table1Config, got {type(config).__name__}")
     rng = _checks.generator("rng", rng)
-    truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
+    truth_rng, *node_rngs = _spawn(rng, 1 + len(config.p_detect))
     times = config.times()
     rates = _turn_rates(times, config.turn_windows, 0.0, config.turn_noise_sd, truth_rng)
     truth = _propagate(config.x0, rates, config.dt, config.q, config.truth_process_noise,
@@ -330,6 +350,9 @@ class Table2Config:
         _checks.positive("lifetime_shape", self.lifetime_shape)
         _checks.positive("lifetime_scale", self.lifetime_scale)
         self.filter_model()  # dt, q and meas_sd give a model float64 holds
+        for i, tg in enumerate(self.targets):
+            _check_rates(f"targets[{i}]", [tg.turn_rate, *(w[2] for w in tg.turn_windows)],
+                         self.q, self.dt)
         _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
 
     def _run_bytes(self) -> float:
@@ -387,7 +410,7 @@ def simulate_table2(config: Table2Config, rng: np.random.Generator) -> MultiTarg
     if not isinstance(config, Table2Config):
         raise FusionInputError(f"config must be a Table2Config, got {type(config).__name__}")
     rng = _checks.generator("rng", rng)
-    truth_rng, *node_rngs = rng.spawn(1 + len(config.p_detect))
+    truth_rng, *node_rngs = _spawn(rng, 1 + len(config.p_detect))
     dt, T = config.dt, config.n_steps
     times = config.times()
     n_tg = len(config.targets)
@@ -483,6 +506,7 @@ class CrossingConfig:
                 raise FusionInputError(f"{name} must not be empty")
             for i, v in enumerate(values.tolist()):
                 check(f"{name}[{i}]", v)
+        _check_rates("turn_rates", self.turn_rates, self.q, self.dt)
         if len(self.clutter_rate) != len(self.p_detect):
             raise FusionInputError(f"clutter_rate must give one rate per node "
                                    f"({len(self.p_detect)}, as p_detect), got "
@@ -522,7 +546,7 @@ def simulate_crossing(config: CrossingConfig, rng: np.random.Generator) -> Multi
     times = config.times()
     nodes = tuple(_crossing_node(truth, alive, p, c, config, nrng, times)
                   for p, c, nrng in zip(config.p_detect, config.clutter_rate,
-                                        rng.spawn(len(config.p_detect)), strict=True))
+                                        _spawn(rng, len(config.p_detect)), strict=True))
     return MultiTargetData(times, truth, alive, nodes)
 
 
