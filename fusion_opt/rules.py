@@ -117,17 +117,17 @@ def fast_ci(means, covs, criterion) -> RuleOutput:
 
 def ifci(means, covs, criterion) -> RuleOutput:
     """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y."""
-    n = means.shape[1]
-    Ys = _information(covs)
-    L = np.linalg.cholesky(Ys.sum(0))
-    Linv = _solve_lower(L, np.eye(n))
-    alpha = np.clip(np.linalg.eigvalsh(Linv @ Ys @ Linv.T), 0.0, 1.0)  # (N, n)
+    F = _factors(covs)
+    _, R = _stacked_qr(F, np.ones(len(F)))  # Y = sum_i Y_i = R^T R
+    B = F @ np.linalg.inv(R)  # the shares R^-T Y_i R^-1 = B_i^T B_i
+    alpha = np.clip(np.linalg.svd(B, compute_uv=False) ** 2, 0.0, 1.0)  # (N, n)
     with np.errstate(divide="ignore"):  # alpha = 1: det(Y - Y_i) = 0, log1p gives -inf
         lost = -np.expm1(np.log1p(-alpha).sum(-1))  # 1 - det(Y - Y_i) / det Y
-    # det Y_i / det Y = 1 / (det P_i det Y), factor by factor of the Cholesky diagonals
-    own = np.exp(-2.0 * np.log(_chol_diagonal(covs) * np.diagonal(L)).sum(-1))
+    # det Y_i / det Y, factor by factor of the triangular diagonals
+    own = np.exp(2.0 * np.log(np.abs(np.diagonal(F, axis1=-2, axis2=-1)
+                                      / np.diagonal(R))).sum(-1))
     score = lost + own
-    return _ci_with(means, covs, score / score.sum(), "ifci", CI_WEIGHTS, Ys)
+    return _ci_with(means, covs, score / score.sum(), "ifci", CI_WEIGHTS, F)
 
 
 def ici(means, covs, criterion) -> RuleOutput:
@@ -167,10 +167,17 @@ PAIR_ONLY = frozenset({"ici", "ei"})
 BATCHED = frozenset({"naive", "fast-ci"})
 
 
-def _information(covs):
-    """Y_i = P_i^-1, symmetrised; (N, n, n)."""
-    Y = np.linalg.inv(covs)
-    return 0.5 * (Y + np.swapaxes(Y, -1, -2))
+def _factors(covs):
+    """F_i = C_i^-1 (..., N, n, n), lower triangular, C_i C_i^T = P_i: Y_i = F_i^T F_i.
+    An inverted covariance of condition 1e12 loses 1e-5 of its accuracy; its triangular
+    factor's inverse eps sqrt(cond), as the compiled path's (`factored.py`)."""
+    return np.linalg.inv(np.linalg.cholesky(covs))
+
+
+def _stacked_qr(F, w):
+    """Q (..., N n, n), R (..., n, n) of the QR of [sqrt(w_i) F_i]: R^T R = sum_i w_i Y_i."""
+    A = np.sqrt(w)[..., None, None] * F
+    return np.linalg.qr(A.reshape(*A.shape[:-3], -1, A.shape[-1]))
 
 
 def _solve_lower(L, B, transpose=False):
@@ -181,18 +188,23 @@ def _solve_lower(L, B, transpose=False):
     return X if info == 0 else np.full(X.shape, np.nan)
 
 
-def _chol_diagonal(covs):
-    return np.diagonal(np.linalg.cholesky(covs), axis1=-2, axis2=-1)
+def _ci_with(means, covs, w, method, weights_are, F=None) -> RuleOutput:
+    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i,
+    from the factors F_i (`_factors`) and the QR of their weighted stack, A = Q R, as the
+    compiled path: P = R^-1 R^-T, tr(K_i) = w_i |F_i R^-1|_F^2 and sum_i K_i d_i =
+    R^-1 Q^T [sqrt(w_i) F_i d_i]. Leading axes are problems."""
+    F = _factors(covs) if F is None else F
+    Q, R = _stacked_qr(F, w)
+    Ri = np.linalg.inv(R)
+    P = Ri @ np.swapaxes(Ri, -1, -2)
+    shares = w * ((F @ Ri[..., None, :, :]) ** 2).sum((-2, -1)) / means.shape[-1]
+    root = np.sqrt(w)[..., None]
 
+    def apply_gains(d):  # d (..., N, n)
+        b = (root * (F @ d[..., None])[..., 0]).reshape(*d.shape[:-2], -1, 1)
+        return (Ri @ (np.swapaxes(Q, -1, -2) @ b))[..., 0]
 
-def _ci_with(means, covs, w, method, weights_are, Ys=None) -> RuleOutput:
-    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i; the
-    gains are applied without being formed (O(N n^2)). Leading axes are problems."""
-    wY = w[..., None, None] * (_information(covs) if Ys is None else Ys)
-    P = np.linalg.inv(wY.sum(-3))
-    shares = np.einsum("...jk,...ijk->...i", P, wY) / means.shape[-1]  # tr(P w_i Y_i) / n
-    mean = _mean(means, shares,
-                 lambda d: (P @ np.einsum("...ijk,...ik->...j", wY, d)[..., None])[..., 0])
+    mean = _mean(means, shares, apply_gains)
     weights = w if weights_are == CI_WEIGHTS else shares
     return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
 
