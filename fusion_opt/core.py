@@ -312,7 +312,7 @@ def compile_part(part: str) -> float:
 def _prepare(means, covs, q, E, a, names, batch):
     code = prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
     if code:
-        raise _input_error(code, a.where, means, covs, names, batch)
+        raise _input_error(code, a.where, means, covs, names, batch, E)
 
 
 def _exact(req, means, covs, q, E, a, names, batch):
@@ -322,7 +322,7 @@ def _exact(req, means, covs, q, E, a, names, batch):
     code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
                       a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
     if code > 0:
-        raise _input_error(code, a.where, means, covs, names, batch)
+        raise _input_error(code, a.where, means, covs, names, batch, E)
     # the certificate reported, which the status is decided on
     if (a.stats[0, 2] if len(a.stats) == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
         _rescue(req, means, covs, q, E, a)
@@ -502,7 +502,7 @@ def _memory(what, need, n, N, limit_name) -> str:
             f"limit of {limit / 2**30:.3g} GiB (fusion_opt.limits.{limit_name})")
 
 
-def _input_error(code, where, means, covs, names, batch) -> FusionInputError:
+def _input_error(code, where, means, covs, names, batch, E) -> FusionInputError:
     """The FusionInputError of a failed check of `prepare`, naming the argument."""
     b, i, j = (int(x) for x in where)
     problem = b if batch else None
@@ -533,5 +533,11 @@ def _input_error(code, where, means, covs, names, batch) -> FusionInputError:
                                 f"(smallest eigenvalue {eig[0]:.3g})")
     assert code == SPREAD
     where_b = "" if problem is None else f" of problem {b}"
+    if E[b].any():  # MBCI's scales s_i, not the covariances, make the spread
+        return FusionInputError(
+            f"{names.covs}{where_b} divided by their detection scales (from p_detect and chi "
+            "or growth) span a ratio of scales beyond float64 (more than 2^1900 between "
+            "nodes): leave out the node of the smallest scale, whose information is below "
+            "float64's resolution beside the others'")
     return FusionInputError(f"{names.covs}{where_b} span a ratio of scales beyond float64 "
                             f"(more than 2^1900 between nodes)")

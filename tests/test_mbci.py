@@ -104,3 +104,12 @@ def test_fuse_mbci_is_bci_on_the_lemmas_scaled_covariances():
         assert r.method == "mbci"
         assert r.objective == pytest.approx(ref.objective, rel=1e-12)
         np.testing.assert_allclose(r.cov, ref.cov, rtol=1e-9)
+
+
+def test_a_spread_made_by_the_detection_scales_names_them():
+    """Regression: p_detect (1, 0, 0) with chi = 1e-300 puts nodes 2^1994 apart, which was
+    refused as if the covariances did it ("covs span a ratio of scales")."""
+    eye = np.eye(2)
+    with pytest.raises(fo.FusionInputError, match="divided by their detection scales"):
+        fo.mbci([[1.0, 0.0], [0.0, 1.0], [5.0, 5.0]], np.stack([eye, 2 * eye, 3 * eye]),
+                [1.0, 0.0, 0.0], 1e-300)
