@@ -38,9 +38,13 @@ How the numbers stay finite and accurate:
   mu (a + b mu) / (a + b mu^2) (a = 1 - w, b = w: a sum of positive terms, so P is positive
   definite), kept in logs; its weight is found by bisection on the sign of the derivative.
   EI's mutual mean needs a regulariser eta only on an axis whose two variances tie to within
-  10 eta (rounding level); there the axis gives the loser's mean the share
+  10 eta, eta = eps; there the axis gives the loser's mean the share
   t eta / (1 - t + 2 eta), t <= 1 the ratio of the smaller to the larger variance (1/2 at an
-  exact tie, 0 on every other axis, as eta -> 0 in Sijs & Lazar's eq. 16).
+  exact tie, 0 on every other axis, as eta -> 0 in Sijs & Lazar's eq. 16). An exact tie
+  is seen as one only where the computed ratio comes within 10 eps of 1, which the pencil
+  of two ill-conditioned nodes need not do (1 - t = 318 eps at condition 1e3: the
+  winner is then the node rounding favours, and swapping the nodes can change it); a
+  tolerance that follows the conditioning made EI depend on the coordinates instead.
 - IFCI's weights are formed from ratios to det Y, which lie in [0, 1]:
   1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the eigenvalues of the share
   L^-1 Y_i L^-T (Y = L L^T), by log1p/expm1, and det Y_i / det Y from Cholesky diagonals.
