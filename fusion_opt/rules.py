@@ -68,6 +68,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.linalg import lapack
 
+from .prepare import MAX_CONDITION
 from .results import FusionInputError, FusionSolverError, Status
 from .validation import SYMMETRY_RTOL, finite_array
 
@@ -334,7 +335,15 @@ def _correlation_factor(cross, covs, Dinv):
     try:
         if not np.isfinite(C).all():
             raise np.linalg.LinAlgError
-        return np.linalg.cholesky(C)
+        R = np.linalg.cholesky(C)
     except np.linalg.LinAlgError:
         raise FusionInputError("cross: the joint covariance is not positive definite") \
             from None
+    # the limit a single covariance has (prepare.MAX_CONDITION), on the whitened joint
+    condition = np.sqrt((C * C).sum()) * (_solve_lower(R, np.eye(N * n)) ** 2).sum()
+    if not condition <= MAX_CONDITION:
+        raise FusionInputError(
+            f"cross: the joint covariance, whitened node by node, is numerically singular: "
+            f"its condition estimate |C|_F |C^-1|_F, {condition:.3g}, is beyond "
+            f"{MAX_CONDITION:.3g}, as for a single covariance")
+    return R

@@ -154,3 +154,18 @@ def test_large_and_offset_means():
     out = RULES["known-cross"](offset, covs, "trace", cross=S)
     m = exact_blue(offset, S)[1]
     assert np.abs(out.mean - m).max() <= np.spacing(np.abs(m).max())
+
+
+def test_known_cross_refuses_a_joint_covariance_beyond_the_condition_limit():
+    """Regression: a correlation of 1 - 1e-14 between two nodes (whitened condition
+    5.7e14) was accepted and gave a covariance off by 1e-2, where a single covariance is
+    refused above prepare.MAX_CONDITION; 1 - 1e-10 (condition 5.7e10) still fuses."""
+    def fuse(rho):
+        cross = np.zeros((2, 2, 2, 2))
+        cross[0, 0] = cross[1, 1] = np.eye(2)
+        cross[0, 1] = cross[1, 0] = rho * np.eye(2)
+        return fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), "known-cross",
+                       cross=cross)
+    with pytest.raises(fo.FusionInputError, match="numerically singular"):
+        fuse(1 - 1e-14)
+    np.testing.assert_allclose(fuse(1 - 1e-10).cov, (1 - 0.5e-10) * np.eye(2), rtol=1e-6)
