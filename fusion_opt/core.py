@@ -401,6 +401,15 @@ def _ci_output(a, solve_time, polish_iters):
 def check_memory(req, n, N, B=1):
     """Refuses (FusionSolverError) B problems whose arrays, weight solver's work arrays or
     conic solve would exceed fusion_opt.limits."""
+    over = over_memory(req, n, N, B)
+    if over is not None:
+        raise FusionSolverError(req.backend or req.method, "memory_limit",
+                                _memory(*over[:2], n, N, over[2]))
+
+
+def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
+    """(what, bytes, name of its limit in fusion_opt.limits) of the first estimate of B
+    problems' memory over its limit (`check_memory`), or None."""
     checks = [(f"the arrays of {B} problem{'s' * (B != 1)}", batch_bytes(B, N, n),
                "working_memory")]
     if req.backend is not None:
@@ -408,10 +417,7 @@ def check_memory(req, n, N, B=1):
                        "working_memory"))
     if req.backend in _CONIC:
         checks.append(("Clarabel's KKT system", conic_bytes(n, N), "conic_memory"))
-    for what, need, limit in checks:
-        if need > getattr(limits, limit):
-            raise FusionSolverError(req.backend or req.method, "memory_limit",
-                                    _memory(what, need, n, N, limit))
+    return next((c for c in checks if c[1] > getattr(limits, c[2])), None)
 
 
 def _overflow(a, batch: bool) -> FusionInputError:

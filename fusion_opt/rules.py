@@ -45,9 +45,13 @@ How the numbers stay finite and accurate:
   of two ill-conditioned nodes need not do (1 - t = 318 eps at condition 1e3: the
   winner is then the node rounding favours, and swapping the nodes can change it); a
   tolerance that follows the conditioning made EI depend on the coordinates instead.
+- naive, fast-ci and ifci never invert a covariance: node i enters as F_i = C_i^-1
+  (P_i = C_i C_i^T) and the weighted sum of informations as the QR of [sqrt(w_i) F_i], as
+  in the compiled path (`_ci_with`).
 - IFCI's weights are formed from ratios to det Y, which lie in [0, 1]:
-  1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the eigenvalues of the share
-  L^-1 Y_i L^-T (Y = L L^T), by log1p/expm1, and det Y_i / det Y from Cholesky diagonals.
+  1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the squared singular values of
+  F_i R^-1 (Y = R^T R), by log1p/expm1, and det Y_i / det Y from the triangular
+  diagonals.
 - known-cross whitens each node by its Cholesky factor (the joint becomes a correlation
   matrix C with identity diagonal blocks) and solves the least-squares form by QR.
 - The mean is m_r + sum_i K_i (m_i - m_r), r the node of the largest gain share, with the
@@ -103,7 +107,7 @@ def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
     Z = R^-1 D^-1 H = Q U (thin QR): P = U^-1 U^-T, K = U^-1 Q^T R^-1 D^-1.
     """
     N, n = means.shape
-    Dinv = np.linalg.inv(np.linalg.cholesky(covs))  # (N, n, n)
+    Dinv = _factors(covs)  # (N, n, n)
     R = _correlation_factor(cross, covs, Dinv)
     Z = _solve_lower(R, Dinv.reshape(N * n, n))
     Q, U = np.linalg.qr(Z)

@@ -27,7 +27,6 @@ from importlib import resources
 from pathlib import Path
 
 import fusion_opt as fo
-from fusion_opt.limits import conic_bytes, working_bytes
 
 
 class ConfigError(ValueError):
@@ -286,15 +285,13 @@ def fits(where: str, n_bytes: float, limit: str = "array_memory") -> None:
                           f"limit of {cap / 2**30:.3g} GiB (fusion_opt.limits.{limit})")
 
 
-CONIC = ("clarabel", "clarabel-direct")  # the backends fusion_opt limits by conic_memory
-
-
 def fusion_fits(where: str, n: int, N: int, backend: str) -> None:
     """Refuse a fusion of N estimates of dimension n by backend that fusion_opt would
-    refuse for its memory (fusion_opt.limits), before any run starts."""
-    fits(where, working_bytes(n, N), "working_memory")
-    if backend in CONIC:
-        fits(where, conic_bytes(n, N), "conic_memory")
+    refuse for its memory (its own estimate, fusion_opt.core.over_memory), before any run
+    starts."""
+    over = fo.core.over_memory(fo.core.request("bci", "trace", backend, {}), n, N)
+    if over is not None:
+        fits(where, over[1], over[2])
 
 
 def construct(section: str, make, *args, **kwargs):

@@ -31,7 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
 from fusion_opt import FusionInputError
-from fusion_opt.validation import cholesky_ok
+from fusion_opt.validation import cholesky_ok, symmetrised
 from trackers import _checks
 
 
@@ -104,7 +104,7 @@ def _cov_block(covs, components):
         P = P[:, idx[:, None], idx[None, :]]
     top = np.abs(P).max(axis=(1, 2))
     asym = np.abs(P - P.swapaxes(1, 2)).max(axis=(1, 2)) > 1e-8 * top
-    low = np.linalg.eigvalsh(0.5 * P + 0.5 * P.swapaxes(1, 2))[:, 0] < -1e-10 * top
+    low = np.linalg.eigvalsh(symmetrised(P))[:, 0] < -1e-10 * top
     if asym.any() or low.any():
         k = int(np.flatnonzero(asym | low)[0])
         what = "symmetric" if asym[k] else "positive semidefinite"
