@@ -266,3 +266,26 @@ def test_an_overflow_names_the_problem_and_what_overflowed():
     with pytest.raises(fo.FusionInputError,
                        match=r"^problem 2: the fused objective \(its trace\) overflows"):
         fo.fuse_batch(np.zeros((3, 2, 2)), covs)
+
+
+@pytest.mark.parametrize("backend", [None, "newton", "slsqp", "clarabel"])
+def test_the_memory_check_refuses_exactly_the_sizes_over_one_limit(backend, monkeypatch):
+    """over_memory's shortcut (the sum of the two working estimates below the limit) gives
+    what each estimate against its limit gives: at limits around each estimate, for a rule
+    (backend None), a native, SLSQP and a conic backend."""
+    from fusion_opt import core
+    from fusion_opt.limits import batch_bytes, conic_bytes, working_bytes
+
+    req = core.request("naive" if backend is None else "bci", "trace", backend, {})
+    n, N, B = 3, 5, 7
+    arrays, work = batch_bytes(B, N, n), working_bytes(n, N, backend)
+    solver = () if backend is None else (work,)
+    for limit in sorted({arrays, work, arrays + work}):
+        for lim in (np.nextafter(limit, 0), limit):
+            monkeypatch.setattr(fo.limits, "working_memory", lim)
+            monkeypatch.setattr(fo.limits, "conic_memory", 2.0**60)
+            over = max((arrays, *solver)) > lim
+            assert (core.over_memory(req, n, N, B) is not None) == over, (lim, backend)
+    if backend == "clarabel":
+        monkeypatch.setattr(fo.limits, "conic_memory", np.nextafter(conic_bytes(n, N), 0))
+        assert core.over_memory(req, n, N, B)[2] == "conic_memory"
