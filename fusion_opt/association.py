@@ -43,6 +43,8 @@ from .validation import hashable
 
 __all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
+# Thresholds and spans of points whose squares the k-d tree holds in float64 with room
+_NORMAL = (1e-100, 1e100)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,15 +177,10 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     M = len(points)
     if M == 0:
         return []
-    # the pairs within threshold in every component, a superset of those within it in
-    # distance, found without squaring (coordinates of 1e200 would overflow there); on
-    # halved points (pairs within threshold / 2 + rounding) if a span overflows the tree
-    with np.errstate(over="ignore"):
-        wide = not np.isfinite(np.ptp(points, axis=0)).all()
-    tree = cKDTree(0.5 * points if wide else points)
-    pairs = tree.query_pairs(threshold, p=np.inf, output_type="ndarray")
-    d, near = _distance(points[pairs[:, 0]] - points[pairs[:, 1]], threshold)
-    keep = near & (owner[pairs[:, 0]] != owner[pairs[:, 1]])
+    pairs = _candidates(points, threshold)
+    i, j = np.ascontiguousarray(pairs.T)
+    d, near = _distance(points.take(i, axis=0) - points.take(j, axis=0), threshold)
+    keep = near & (owner.take(i) != owner.take(j))  # take: 3x indexing by a column's speed
     pairs, d = pairs[keep], d[keep]
     label = _components(pairs, M)
     conflicted = _repeats_a_source(label, owner)
@@ -206,13 +203,28 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
     return sorted(groups, key=lambda g: g[0])
 
 
+def _candidates(points: np.ndarray, threshold: float) -> np.ndarray:
+    """(P, 2), i < j: a superset of the pairs of points (M, d) closer than threshold. In
+    the normal range by the k-d tree's Euclidean distance, widened by far more than its
+    rounding; else in the maximum norm, without squaring (coordinates of 1e200 overflow
+    there), on halved points (pairs within threshold / 2 + rounding) if a span overflows
+    the tree. The Euclidean query is the faster (1.0 against 1.8 ms at 32 x 100 points)."""
+    with np.errstate(over="ignore"):
+        span = np.ptp(points, axis=0).max()
+    if _NORMAL[0] < threshold < _NORMAL[1] and span < _NORMAL[1]:
+        return cKDTree(points).query_pairs(threshold * (1.0 + 1e-9), output_type="ndarray")
+    tree = cKDTree(0.5 * points if not np.isfinite(span) else points)
+    return tree.query_pairs(threshold, p=np.inf, output_type="ndarray")
+
+
 def _distance(diff: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """Distances |diff| over the last axis in units of threshold's power of two s (exact:
     the squares stay in float64 for any threshold), and whether each is below threshold;
     a difference that overflowed (inf) is never below it."""
     s = _unit(threshold)
     with np.errstate(over="ignore", invalid="ignore"):
-        d = np.linalg.norm(diff / s, axis=-1)
+        scaled = diff / s
+        d = np.sqrt(np.einsum("...k,...k->...", scaled, scaled))  # 5x np.linalg.norm's speed
     return d, d < threshold / s
 
 

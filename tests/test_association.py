@@ -194,3 +194,24 @@ def test_joining_pair_by_pair_checks_the_memory_limit(monkeypatch):
     fo.limits.array_memory = 4.0  # 2 estimates of s0 and one of s1 in one component: 3 x 2
     with pytest.raises(fo.FusionInputError, match="3 estimates from 2 sources"):
         fo.associate(_reports([[0.0, 0.0], [0.2, 0.0]], [[0.1, 0.0]]), 1.0)
+
+
+def test_candidate_pairs_hold_every_pair_closer_than_the_threshold():
+    """`_candidates` (the k-d tree's Euclidean query in the normal range, the maximum norm
+    beyond it) misses no pair that `_distance` puts within the threshold, at scales from
+    1e-120 to 1e120 and with pairs one ulp either side of it (brute force over all pairs)."""
+    from fusion_opt.association import _candidates, _distance
+
+    rng = np.random.default_rng(7)
+    for scale in (1e-120, 1e-99, 1e-30, 1.0, 1e30, 1e99, 1e120):
+        for _ in range(5):
+            points = scale * rng.uniform(0, 3, size=(60, 2))
+            # pairs at exactly the threshold's distance and one ulp inside it
+            threshold = float(np.linalg.norm(points[1] - points[0]))
+            points[2] = points[0] + np.nextafter(points[1] - points[0], 0)
+            i, j = np.triu_indices(len(points), 1)
+            near = _distance(points[i] - points[j], threshold)[1]
+            got = {tuple(p) for p in _candidates(points, threshold).tolist()}
+            missed = [(a, b) for a, b, c in zip(i, j, near, strict=True) if c and (a, b) not in got]
+            assert not missed, (scale, missed)
+            assert near.any()
