@@ -405,7 +405,7 @@ def check_memory(req, n, N, B=1):
     over = over_memory(req, n, N, B)
     if over is not None:
         raise FusionSolverError(req.backend or req.method, "memory_limit",
-                                _memory(*over[:2], n, N, over[2]))
+                                _memory(*over[:2], n, N, over[2]), _role(req))
 
 
 def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
@@ -491,7 +491,12 @@ def _check_finite(req, out):
     diag = np.diagonal(cov, axis1=-2, axis2=-1)
     if not (diag > 0).all():
         raise FusionSolverError(req.backend or req.method, "numerical_error",
-                                "the fused covariance is not positive definite")
+                                "the fused covariance is not positive definite", _role(req))
+
+
+def _role(req) -> str:
+    """What a FusionSolverError names: the backend, or a rule's method."""
+    return "backend" if req.backend is not None else "method"
 
 
 def _result(req, out, batch):

@@ -39,15 +39,16 @@ class FusionInputError(ValueError):
 
 
 class FusionSolverError(RuntimeError):
-    """A weight solver failed. `backend` and `status` say which and how."""
+    """A weight solver, or a rule without one, failed. `backend` and `status` say which
+    and how; `role` is "backend", or "method" for a rule (whose name `backend` holds)."""
 
-    def __init__(self, backend: str, status: str, detail: str = ""):
-        self.backend, self.status, self.detail = backend, status, detail
-        msg = f"backend {backend!r} failed with status {status!r}"
+    def __init__(self, backend: str, status: str, detail: str = "", role: str = "backend"):
+        self.backend, self.status, self.detail, self.role = backend, status, detail, role
+        msg = f"{role} {backend!r} failed with status {status!r}"
         super().__init__(f"{msg}: {detail}" if detail else msg)
 
     def __reduce__(self):  # picklable, so it crosses a process pool intact
-        return type(self), (self.backend, self.status, self.detail)
+        return type(self), (self.backend, self.status, self.detail, self.role)
 
 
 def status_array(status) -> np.ndarray:

@@ -57,7 +57,7 @@ How the numbers stay finite and accurate:
 - The mean is m_r + sum_i K_i (m_i - m_r), r the node of the largest gain share, with the
   differences scaled by a power of two, so that no product overflows.
 A rule that still meets a non-finite or non-positive-definite result raises
-FusionSolverError(method, "numerical_error", ...); it never returns one.
+FusionSolverError(method, "numerical_error", ..., role="method"); it never returns one.
 
 `weights` are the CI weights for fast-ci and ifci, (w, 1 - w) for ici ("ci_weights"), and
 the gain shares tr(K_i) / n (summing to 1, negative where a gain is, e.g. for known-cross)
@@ -253,7 +253,7 @@ def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:
     if not finite:
         raise FusionSolverError(method, "numerical_error",
                                 "the fused mean or covariance is not finite or not positive "
-                                "definite in double precision")
+                                "definite in double precision", role="method")
     return RuleOutput(weights, mean, P, status, weights_are)
 
 
@@ -266,7 +266,8 @@ def _pencil(covs, method):
     U, sigma, _ = np.linalg.svd(_solve_lower(Lb, La))
     if sigma.min() == 0.0:
         raise FusionSolverError(method, "numerical_error",
-                                "the covariances' ratio exceeds the double-precision range")
+                                "the covariances' ratio exceeds the double-precision range",
+                                role="method")
     return sigma, Lb @ U, U.T @ _solve_lower(Lb, np.eye(n))
 
 

@@ -97,3 +97,6 @@ def test_solver_error_survives_pickling():
     err = pickle.loads(pickle.dumps(fo.FusionSolverError("scs", "infeasible", "detail")))
     assert (err.backend, err.status) == ("scs", "infeasible")
     assert "detail" in str(err)
+    err = pickle.loads(pickle.dumps(fo.FusionSolverError("ei", "numerical_error", role="method")))
+    assert (err.backend, err.role, str(err)) == (
+        "ei", "method", "method 'ei' failed with status 'numerical_error'")
