@@ -67,6 +67,7 @@ from .factored import (
     FACTORED,
     GRADED,
     evaluate_at,
+    factor,
     gap,
     gradient_at,
     improvement,
@@ -226,23 +227,59 @@ def _fused_mean(F, means, w, Vt, Ri, rhs, mean, e: int):
 
 
 @jit
+def fuse_at(F, means, W, mean, cov, shares) -> bool:
+    """The CI formula at fixed weights W (B, N), each > 0 and of any sum (the rules' weights:
+    naive's are all 1), without the solver's certificate or best-vertex rule: mean (B, n),
+    cov (B, n, n) = (sum_i w_i Y_i)^-1 in F's units, and the gain shares
+    tr(K_i) / n = w_i |F_i R^-1|_F^2 / n (B, N). Returns False where Y(w) is not positive
+    definite to rounding or a result is not finite."""
+    B, N, n = means.shape
+    ws = work(N, n)
+    for b in range(B):
+        if not factor(F[b], W[b], ws.At, ws.Vt, ws.R, ws.Ri)[1]:
+            return False
+        _mean_at(F[b], means[b], W[b], ws.Vt, ws.Ri, ws.rhs, mean[b])
+        _covariance_at(ws.Ri, cov[b])
+        gradient_at(F[b], ws.Ri, ws.P, ws.B, ws.g, False)  # g_i = -|F_i R^-1|_F^2
+        for i in range(N):
+            shares[b, i] = -W[b, i] * ws.g[i] / n
+        if not (_finite(mean[b]) and _finite(cov[b]) and _finite(shares[b])):
+            return False
+    return True
+
+
+@jit
+def _mean_at(F, means, w, Vt, Ri, rhs, mean):
+    """`_fused_mean` at w, whose QR the buffers hold; where an intermediate overflows
+    (means near 1.8e308), in units of a power of two near the largest mean, exact but for
+    subnormals, which then do not matter."""
+    _fused_mean(F, means, w, Vt, Ri, rhs, mean, 0)
+    if not _finite(mean):
+        e = 0
+        for i in range(w.size):
+            for a in range(F.shape[1]):
+                if w[i] > 0.0 and means[i, a] != 0.0:
+                    e = max(e, math.frexp(means[i, a])[1])
+        _fused_mean(F, means, w, Vt, Ri, rhs, mean, min(e, 1022))
+
+
+@jit
+def _covariance_at(Ri, P):
+    """P = R^-1 R^-T."""
+    if Ri.shape[0] <= SMALL:
+        small_mul_t(Ri, Ri, P)
+    else:
+        matmul_t(Ri, Ri, P)
+
+
+@jit
 def _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
               graded: bool):
     """The fused estimate at w, whose factors the buffers hold (`_vertex_or_interior`),
     and whose gradient g holds when graded."""
     n = F.shape[1]
-    _fused_mean(F, means, w, Vt, Ri, rhs, mean, 0)
-    if not _finite(mean):  # an intermediate overflowed (means near 1.8e308): in units of
-        e = 0              # a power of two near the largest mean, exact but for
-        for i in range(w.size):  # subnormals, which then do not matter
-            for a in range(n):
-                if w[i] > 0.0 and means[i, a] != 0.0:
-                    e = max(e, math.frexp(means[i, a])[1])
-        _fused_mean(F, means, w, Vt, Ri, rhs, mean, min(e, 1022))
-    if n <= SMALL:
-        small_mul_t(Ri, Ri, P)
-    else:
-        matmul_t(Ri, Ri, P)
+    _mean_at(F, means, w, Vt, Ri, rhs, mean)
+    _covariance_at(Ri, P)
     scaled(P, 1.0, -k, cov)  # sym(P) 2^k: back to the original units
     f = value(R, Ri, trace)
     if not graded:

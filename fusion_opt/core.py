@@ -210,7 +210,7 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
     work = _Arrays.of(B, N, n)
     if req.method in rules.RULES:
         _prepare(means, covs, q, E, work, names, batch)
-        out = _rules(req, means, covs, work.k, batch)
+        out = _rules(req, means, covs, work.k, work.F, batch)
         _check_finite(req, out)
     elif req.backend in EXACT:
         out = _exact(req, means, covs, q, E, work, names, batch)
@@ -435,22 +435,25 @@ def _overflow(a, batch: bool) -> FusionInputError:
         "(covariances or means too large, or MBCI scales too small for it to be represented)")
 
 
-def _rules(req, means, covs, k, batch):
-    """A rule of rules.py on the prescaled covariances: the whole batch in one call for the
-    rules of rules.BATCHED, problem by problem for the others."""
+def _rules(req, means, covs, k, F, batch):
+    """A rule of rules.py on the prescaled covariances and their factors F (B, N, n, n)
+    from `prepare`: the whole batch in one call for the rules of rules.BATCHED, problem by
+    problem for the others."""
     B, N, n = means.shape
     shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
     scaled = np.ldexp(symmetrised(covs), shift)
     rule = rules.RULES[req.method]
+    factors = req.method in rules.FACTORED
     if req.method in rules.BATCHED:
-        o = rule(means, scaled, req.criterion)
+        o = rule(means, scaled, req.criterion, F=F)
         weights, mean, scaled_cov, weights_are = o.weights, o.mean, o.cov, o.weights_are
         status = np.array([Status(o.status)] * B, dtype=object)
     else:
         cross = _cross(req.args.get("cross"), B, N, n, batch) \
             if "cross" in _ARGS[req.method] else None
-        outs = [rule(means[b], scaled[b], req.criterion, **({} if cross is None else {
-            "cross": np.ldexp(cross[b], shift[b, 0])})) for b in range(B)]
+        outs = [rule(means[b], scaled[b], req.criterion, **({"F": F[b]} if factors else {}),
+                     **({} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}))
+                for b in range(B)]
         weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
         status = np.array([Status(o.status) for o in outs], dtype=object)
         weights_are = outs[0].weights_are

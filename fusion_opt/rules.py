@@ -4,6 +4,10 @@
 Inputs arrive validated: float64 means (N, n) and covs (N, n, n), finite, symmetric and
 positive definite, multiplied by a power of two so that the nodes' scales sit around 1
 (they may still differ by up to ~1e150 either way, each with a condition number up to ~1e13).
+The rules of FACTORED also take F (N, n, n), the covariances' square-root factors,
+F_i = C_i^-1 lower triangular, P_i = C_i C_i^T, so Y_i = F_i^T F_i: the core passes those
+its compiled checks computed (`prepare.py`), so they are not computed twice (`_factors`
+computes them for a direct call).
 Each rule gives gains K_i (n, n) with sum_i K_i = I, the mean m = sum_i K_i m_i and a
 covariance P. What each assumes, and whether P is consistent (>= the true error covariance)
 when the cross-correlation of the inputs is unknown:
@@ -45,9 +49,9 @@ How the numbers stay finite and accurate:
   of two ill-conditioned nodes need not do (1 - t = 318 eps at condition 1e3: the
   winner is then the node rounding favours, and swapping the nodes can change it); a
   tolerance that follows the conditioning made EI depend on the coordinates instead.
-- naive, fast-ci and ifci never invert a covariance: node i enters as F_i = C_i^-1
-  (P_i = C_i C_i^T) and the weighted sum of informations as the QR of [sqrt(w_i) F_i], as
-  in the compiled path (`_ci_with`).
+- naive, fast-ci and ifci never invert a covariance: node i enters as its factor F_i and the
+  weighted sum of informations as the QR of [sqrt(w_i) F_i], as in the compiled path
+  (`_ci_with`).
 - IFCI's weights are formed from ratios to det Y, which lie in [0, 1]:
   1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the squared singular values of
   F_i R^-1 (Y = R^T R), by log1p/expm1, and det Y_i / det Y from the triangular
@@ -72,6 +76,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.linalg import lapack
 
+from .assemble import fuse_at
 from .prepare import MAX_CONDITION
 from .results import FusionInputError, FusionSolverError, Status
 from .validation import SYMMETRY_RTOL, finite_array
@@ -95,19 +100,20 @@ class RuleOutput(NamedTuple):
     weights_are: str
 
 
-def naive(means, covs, criterion) -> RuleOutput:
+def naive(means, covs, criterion, *, F=None) -> RuleOutput:
     """Independent (Kalman) fusion: CI formula with every weight 1 (batched, see BATCHED)."""
-    return _ci_with(means, covs, np.ones(means.shape[:-1]), "naive", GAIN_SHARES)
+    return _ci_with(means, _factors(covs) if F is None else F, np.ones(means.shape[:-1]),
+                    "naive", GAIN_SHARES)
 
 
-def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
+def known_cross(means, covs, criterion, *, cross, F=None) -> RuleOutput:
     """BLUE given cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), cross[i, i] = covs[i].
 
     With D = blockdiag(D_i), P_i = D_i D_i^T, the joint is S = D C D^T, C = R R^T, and
     Z = R^-1 D^-1 H = Q U (thin QR): P = U^-1 U^-T, K = U^-1 Q^T R^-1 D^-1.
     """
     N, n = means.shape
-    Dinv = _factors(covs)  # (N, n, n)
+    Dinv = _factors(covs) if F is None else F  # (N, n, n)
     R = _correlation_factor(cross, covs, Dinv)
     Z = _solve_lower(R, Dinv.reshape(N * n, n))
     Q, U = np.linalg.qr(Z)
@@ -117,16 +123,17 @@ def known_cross(means, covs, criterion, *, cross) -> RuleOutput:
     return _finish("known-cross", means, Uinv @ Uinv.T, gains)
 
 
-def fast_ci(means, covs, criterion) -> RuleOutput:
+def fast_ci(means, covs, criterion, *, F=None) -> RuleOutput:
     """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002; batched)."""
     tr = np.trace(covs, axis1=-2, axis2=-1)
     ratio = tr.min(-1, keepdims=True) / tr  # in (0, 1]: no overflow whatever the scales
-    return _ci_with(means, covs, ratio / ratio.sum(-1, keepdims=True), "fast-ci", CI_WEIGHTS)
+    w = ratio / ratio.sum(-1, keepdims=True)
+    return _ci_with(means, _factors(covs) if F is None else F, w, "fast-ci", CI_WEIGHTS)
 
 
-def ifci(means, covs, criterion) -> RuleOutput:
+def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
     """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y."""
-    F = _factors(covs)
+    F = _factors(covs) if F is None else F
     _, R = _stacked_qr(F, np.ones(len(F)))  # Y = sum_i Y_i = R^T R
     B = F @ np.linalg.inv(R)  # the shares R^-T Y_i R^-1 = B_i^T B_i
     alpha = np.clip(np.linalg.svd(B, compute_uv=False) ** 2, 0.0, 1.0)  # (N, n)
@@ -136,7 +143,7 @@ def ifci(means, covs, criterion) -> RuleOutput:
     own = np.exp(2.0 * np.log(np.abs(np.diagonal(F, axis1=-2, axis2=-1)
                                       / np.diagonal(R))).sum(-1))
     score = lost + own
-    return _ci_with(means, covs, score / score.sum(), "ifci", CI_WEIGHTS, F)
+    return _ci_with(means, F, score / score.sum(), "ifci", CI_WEIGHTS)
 
 
 def ici(means, covs, criterion) -> RuleOutput:
@@ -171,15 +178,15 @@ RULES: dict[str, Callable[..., RuleOutput]] = {
 RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
     "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
+# Rules that take the square-root factors F (module docstring).
+FACTORED = frozenset({"naive", "known-cross", "fast-ci", "ifci"})
 # Rules that take a batch, means (B, N, n) and covs (B, N, n, n), in one call (each
 # problem computed as alone); the others take one problem at a time.
 BATCHED = frozenset({"naive", "fast-ci"})
 
 
 def _factors(covs):
-    """F_i = C_i^-1 (..., N, n, n), lower triangular, C_i C_i^T = P_i: Y_i = F_i^T F_i.
-    An inverted covariance of condition 1e12 loses 1e-5 of its accuracy; its triangular
-    factor's inverse eps sqrt(cond), as the compiled path's (`factored.py`)."""
+    """F_i = C_i^-1 (..., N, n, n), lower triangular, C_i C_i^T = P_i: Y_i = F_i^T F_i."""
     return np.linalg.inv(np.linalg.cholesky(covs))
 
 
@@ -197,24 +204,21 @@ def _solve_lower(L, B, transpose=False):
     return X if info == 0 else np.full(X.shape, np.nan)
 
 
-def _ci_with(means, covs, w, method, weights_are, F=None) -> RuleOutput:
-    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i,
-    from the factors F_i (`_factors`) and the QR of their weighted stack, A = Q R, as the
-    compiled path: P = R^-1 R^-T, tr(K_i) = w_i |F_i R^-1|_F^2 and sum_i K_i d_i =
-    R^-1 Q^T [sqrt(w_i) F_i d_i]. Leading axes are problems."""
-    F = _factors(covs) if F is None else F
-    Q, R = _stacked_qr(F, w)
-    Ri = np.linalg.inv(R)
-    P = Ri @ np.swapaxes(Ri, -1, -2)
-    shares = w * ((F @ Ri[..., None, :, :]) ** 2).sum((-2, -1)) / means.shape[-1]
-    root = np.sqrt(w)[..., None]
-
-    def apply_gains(d):  # d (..., N, n)
-        b = (root * (F @ d[..., None])[..., 0]).reshape(*d.shape[:-2], -1, 1)
-        return (Ri @ (np.swapaxes(Q, -1, -2) @ b))[..., 0]
-
-    mean = _mean(means, shares, apply_gains)
-    weights = w if weights_are == CI_WEIGHTS else shares
+def _ci_with(means, F, w, method, weights_are) -> RuleOutput:
+    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i, by
+    the compiled path's arithmetic (`assemble.fuse_at`: the QR of [sqrt(w_i) F_i], P =
+    R^-1 R^-T, tr(K_i) = w_i |F_i R^-1|_F^2, the mean by least squares), on the factors F
+    (..., N, n, n). Leading axes are problems. (An inverted covariance of condition 1e12
+    loses 1e-5 of its accuracy, a triangular factor's inverse eps sqrt(cond).)"""
+    *lead, N, n = means.shape
+    B = int(np.prod(lead))
+    W = np.array(np.broadcast_to(w, (*lead, N)), dtype=float).reshape(B, N)
+    mean, P, shares = np.empty((B, n)), np.empty((B, n, n)), np.empty((B, N))
+    if not fuse_at(np.ascontiguousarray(F, dtype=float).reshape(B, N, n, n),
+                   np.ascontiguousarray(means, dtype=float).reshape(B, N, n), W, mean, P, shares):
+        mean[:] = np.nan  # refused by _output
+    mean, P, shares = mean.reshape(*lead, n), P.reshape(*lead, n, n), shares.reshape(*lead, N)
+    weights = W.reshape(*lead, N) if weights_are == CI_WEIGHTS else shares
     return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
 
 
