@@ -77,6 +77,8 @@ import numpy as np
 from scipy.linalg import lapack
 
 from .assemble import fuse_at
+from .factored import factor, work
+from .linalg import jit, matmul
 from .prepare import MAX_CONDITION
 from .results import FusionInputError, FusionSolverError, Status
 from .validation import SYMMETRY_RTOL, finite_array
@@ -133,17 +135,35 @@ def fast_ci(means, covs, criterion, *, F=None) -> RuleOutput:
 
 def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
     """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y."""
-    F = _factors(covs) if F is None else F
-    _, R = _stacked_qr(F, np.ones(len(F)))  # Y = sum_i Y_i = R^T R
-    B = F @ np.linalg.inv(R)  # the shares R^-T Y_i R^-1 = B_i^T B_i
-    alpha = np.clip(np.linalg.svd(B, compute_uv=False) ** 2, 0.0, 1.0)  # (N, n)
-    with np.errstate(divide="ignore"):  # alpha = 1: det(Y - Y_i) = 0, log1p gives -inf
-        lost = -np.expm1(np.log1p(-alpha).sum(-1))  # 1 - det(Y - Y_i) / det Y
-    # det Y_i / det Y, factor by factor of the triangular diagonals
-    own = np.exp(2.0 * np.log(np.abs(np.diagonal(F, axis1=-2, axis2=-1)
-                                      / np.diagonal(R))).sum(-1))
-    score = lost + own
+    F = np.ascontiguousarray(_factors(covs) if F is None else F, dtype=float)
+    score = np.empty(len(F))
+    if not _ifci_scores(F, score) or not np.isfinite(score).all():
+        raise FusionSolverError("ifci", "numerical_error", "the sum of the informations is "
+                                "not positive definite in double precision", role="method")
     return _ci_with(means, F, score / score.sum(), "ifci", CI_WEIGHTS)
+
+
+@jit
+def _ifci_scores(F, score) -> bool:
+    """score (N,) = 1 - det(Y - Y_i) / det Y + det Y_i / det Y for factors F (N, n, n),
+    Y = sum_i Y_i = R^T R (the QR of `factored.factor`, weights 1; module docstring):
+    1 - prod_k (1 - alpha_k), alpha the squared singular values of F_i R^-1, by log1p and
+    expm1, and the triangular diagonals' ratios. False if Y is not positive definite to
+    rounding."""
+    N, n = F.shape[0], F.shape[1]
+    ws = work(N, n)
+    if not factor(F, np.ones(N), ws.At, ws.Vt, ws.R, ws.Ri)[1]:
+        return False
+    B = np.empty((n, n))
+    for i in range(N):
+        matmul(F[i], ws.Ri, B)
+        sigma = np.linalg.svd(B)[1]
+        kept, own = 0.0, 0.0
+        for k in range(n):
+            kept += np.log1p(-min(sigma[k] * sigma[k], 1.0))  # -inf where alpha = 1
+            own += 2.0 * np.log(abs(F[i, k, k] / ws.R[k, k]))
+        score[i] = -np.expm1(kept) + np.exp(own)
+    return True
 
 
 def ici(means, covs, criterion) -> RuleOutput:
@@ -188,12 +208,6 @@ BATCHED = frozenset({"naive", "fast-ci"})
 def _factors(covs):
     """F_i = C_i^-1 (..., N, n, n), lower triangular, C_i C_i^T = P_i: Y_i = F_i^T F_i."""
     return np.linalg.inv(np.linalg.cholesky(covs))
-
-
-def _stacked_qr(F, w):
-    """Q (..., N n, n), R (..., n, n) of the QR of [sqrt(w_i) F_i]: R^T R = sum_i w_i Y_i."""
-    A = np.sqrt(w)[..., None, None] * F
-    return np.linalg.qr(A.reshape(*A.shape[:-3], -1, A.shape[-1]))
 
 
 def _solve_lower(L, B, transpose=False):

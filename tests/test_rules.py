@@ -260,3 +260,15 @@ def test_fuse_refuses_wrong_rule_arguments():
         fo.fuse(np.zeros((3, 2)), P, method="known-cross")
     with pytest.raises(fo.FusionInputError, match="cross"):
         fo.fuse(np.zeros((3, 2)), P, method="naive", cross=np.zeros((3, 3, 2, 2)))
+
+
+def test_ifci_refuses_scores_it_cannot_form(monkeypatch):
+    """Where the sum of the informations is not positive definite in double precision
+    (the compiled scores report it), IFCI raises, naming itself, rather than dividing by a
+    NaN sum."""
+    from fusion_opt import rules
+
+    monkeypatch.setattr(rules, "_ifci_scores", lambda F, score: False)
+    with pytest.raises(fo.FusionSolverError, match=r"^method 'ifci' failed with status "
+                                                   r"'numerical_error'"):
+        fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), "ifci")
