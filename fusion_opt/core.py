@@ -68,7 +68,6 @@ PAIR_METHODS = frozenset({"ci", *rules.PAIR_ONLY})
 _ARGS = {"ci": frozenset(), "bci": frozenset(),
          "mbci": frozenset({"p_detect", "chi", "growth"}), **rules.RULE_ARGS}
 _CONIC = frozenset({"clarabel", "clarabel-direct"})
-_CONIC_OR_SLSQP = _CONIC | {"slsqp"}
 # Interior-point weights below this fraction of the largest are the solver's stand-in for 0.
 _SUPPORT_RTOL = 1e-7
 
@@ -410,18 +409,20 @@ def check_memory(req, n, N, B=1):
 
 def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
     """(what, bytes, name of its limit in fusion_opt.limits) of the first estimate of B
-    problems' memory over its limit (`check_memory`), or None."""
-    if req.backend not in _CONIC_OR_SLSQP and \
-            batch_bytes(B, N, n) + working_bytes(n, N) <= limits.working_memory:
-        return None  # the common case (both below the limit), at a third of the cost below
-    checks = [(f"the arrays of {B} problem{'s' * (B != 1)}", batch_bytes(B, N, n),
-               "working_memory")]
-    if req.backend is not None:
-        checks.append(("the weight solver's work arrays", working_bytes(n, N, req.backend),
-                       "working_memory"))
-    if req.backend in _CONIC:
-        checks.append(("Clarabel's KKT system", conic_bytes(n, N), "conic_memory"))
-    return next((c for c in checks if c[1] > getattr(limits, c[2])), None)
+    problems' memory over its limit (`check_memory`), or None. The numbers come first and
+    the words only for one over its limit (a call's fixed cost: 0.55 against 1.4 us)."""
+    need = (batch_bytes(B, N, n),
+            0.0 if req.backend is None else working_bytes(n, N, req.backend),
+            conic_bytes(n, N) if req.backend in _CONIC else 0.0)
+    limit = (limits.working_memory, limits.working_memory, limits.conic_memory)
+    if need[0] <= limit[0] and need[1] <= limit[1] and need[2] <= limit[2]:
+        return None
+    for k in range(3):
+        if need[k] > limit[k]:
+            what = (f"the arrays of {B} problem{'s' * (B != 1)}",
+                    "the weight solver's work arrays", "Clarabel's KKT system")[k]
+            return what, need[k], ("working_memory", "working_memory", "conic_memory")[k]
+    return None
 
 
 def _overflow(a, batch: bool) -> FusionInputError:
