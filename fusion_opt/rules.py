@@ -134,35 +134,39 @@ def fast_ci(means, covs, criterion, *, F=None) -> RuleOutput:
 
 
 def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
-    """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y."""
+    """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y
+    (batched, see BATCHED)."""
     F = np.ascontiguousarray(_factors(covs) if F is None else F, dtype=float)
-    score = np.empty(len(F))
-    if not _ifci_scores(F, score) or not np.isfinite(score).all():
+    *lead, N, n = means.shape
+    score = np.empty((*lead, N))
+    if not _ifci_scores(F.reshape(-1, N, n, n), score.reshape(-1, N)) \
+            or not np.isfinite(score).all():
         raise FusionSolverError("ifci", "numerical_error", "the sum of the informations is "
                                 "not positive definite in double precision", role="method")
-    return _ci_with(means, F, score / score.sum(), "ifci", CI_WEIGHTS)
+    return _ci_with(means, F, score / score.sum(-1, keepdims=True), "ifci", CI_WEIGHTS)
 
 
 @jit
 def _ifci_scores(F, score) -> bool:
-    """score (N,) = 1 - det(Y - Y_i) / det Y + det Y_i / det Y for factors F (N, n, n),
+    """score (B, N) = 1 - det(Y - Y_i) / det Y + det Y_i / det Y for factors F (B, N, n, n),
     Y = sum_i Y_i = R^T R (the QR of `factored.factor`, weights 1; module docstring):
     1 - prod_k (1 - alpha_k), alpha the squared singular values of F_i R^-1, by log1p and
-    expm1, and the triangular diagonals' ratios. False if Y is not positive definite to
+    expm1, and the triangular diagonals' ratios. False if a Y is not positive definite to
     rounding."""
-    N, n = F.shape[0], F.shape[1]
+    N, n = F.shape[1], F.shape[2]
     ws = work(N, n)
-    if not factor(F, np.ones(N), ws.At, ws.Vt, ws.R, ws.Ri)[1]:
-        return False
-    B = np.empty((n, n))
-    for i in range(N):
-        matmul(F[i], ws.Ri, B)
-        sigma = np.linalg.svd(B)[1]
-        kept, own = 0.0, 0.0
-        for k in range(n):
-            kept += np.log1p(-min(sigma[k] * sigma[k], 1.0))  # -inf where alpha = 1
-            own += 2.0 * np.log(abs(F[i, k, k] / ws.R[k, k]))
-        score[i] = -np.expm1(kept) + np.exp(own)
+    ones, B = np.ones(N), np.empty((n, n))
+    for b in range(F.shape[0]):
+        if not factor(F[b], ones, ws.At, ws.Vt, ws.R, ws.Ri)[1]:
+            return False
+        for i in range(N):
+            matmul(F[b, i], ws.Ri, B)
+            sigma = np.linalg.svd(B)[1]
+            kept, own = 0.0, 0.0
+            for k in range(n):
+                kept += np.log1p(-min(sigma[k] * sigma[k], 1.0))  # -inf where alpha = 1
+                own += 2.0 * np.log(abs(F[b, i, k, k] / ws.R[k, k]))
+            score[b, i] = -np.expm1(kept) + np.exp(own)
     return True
 
 
@@ -202,7 +206,7 @@ PAIR_ONLY = frozenset({"ici", "ei"})
 FACTORED = frozenset({"naive", "known-cross", "fast-ci", "ifci"})
 # Rules that take a batch, means (B, N, n) and covs (B, N, n, n), in one call (each
 # problem computed as alone); the others take one problem at a time.
-BATCHED = frozenset({"naive", "fast-ci"})
+BATCHED = frozenset({"naive", "fast-ci", "ifci"})
 
 
 def _factors(covs):
