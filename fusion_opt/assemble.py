@@ -232,7 +232,7 @@ def fuse_at(F, means, W, mean, cov, shares) -> bool:
     naive's are all 1), without the solver's certificate or best-vertex rule: mean (B, n),
     cov (B, n, n) = (sum_i w_i Y_i)^-1 in F's units, and the gain shares
     tr(K_i) / n = w_i |F_i R^-1|_F^2 / n (B, N). Returns False where Y(w) is not positive
-    definite to rounding or a result is not finite."""
+    definite to rounding (the rules' `_output` refuses a result that is not finite)."""
     B, N, n = means.shape
     ws = work(N, n)
     for b in range(B):
@@ -243,8 +243,6 @@ def fuse_at(F, means, W, mean, cov, shares) -> bool:
         gradient_at(F[b], ws.Ri, ws.P, ws.B, ws.g, False)  # g_i = -|F_i R^-1|_F^2
         for i in range(N):
             shares[b, i] = -W[b, i] * ws.g[i] / n
-        if not (_finite(mean[b]) and _finite(cov[b]) and _finite(shares[b])):
-            return False
     return True
 
 
