@@ -458,11 +458,12 @@ def _rules(req, means, covs, k, F, batch):
         weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
         status = np.array([Status(o.status) for o in outs], dtype=object)
         weights_are = outs[0].weights_are
-    cov = np.ldexp(scaled_cov, -shift[:, 0])
-    if req.trace:
-        obj = np.ldexp(np.trace(scaled_cov, axis1=-2, axis2=-1), k)
-    else:
-        obj = _logdet(scaled_cov) + n * k * np.log(2.0)
+    with np.errstate(over="ignore"):  # an overflow is refused by _check_finite
+        cov = np.ldexp(scaled_cov, -shift[:, 0])
+        if req.trace:
+            obj = np.ldexp(np.trace(scaled_cov, axis1=-2, axis2=-1), k)
+        else:
+            obj = _logdet(scaled_cov) + n * k * np.log(2.0)
     return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
             weights_are)
 

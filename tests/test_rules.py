@@ -272,3 +272,16 @@ def test_ifci_refuses_scores_it_cannot_form(monkeypatch):
     with pytest.raises(fo.FusionSolverError, match=r"^method 'ifci' failed with status "
                                                    r"'numerical_error'"):
         fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), "ifci")
+
+
+def test_a_rule_whose_trace_overflows_is_refused_without_a_warning():
+    """Regression: fast CI of covariances 1e308 I and 1.7e308 I (a fused covariance of
+    1.26e308 I, whose trace overflows) was refused, but numpy's overflow warning leaked from
+    the scaling back to the caller's units."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(fo.FusionInputError, match="overflows float64"):
+            fo.fuse(np.ones((2, 2)), np.stack([1e308 * np.eye(2), 1.7e308 * np.eye(2)]),
+                    "fast-ci")
