@@ -45,6 +45,11 @@ a scipy result that is not a success. The Dolan-More performance profile counts 
 solved by a solver that did not fail and whose objective gap is within each of
 profile_tolerances.
 
+Per single cell, newton's time by part (`_part_rows`, rows of mode "parts"): the whole
+fo.bci call and the three parts of its compiled call, each timed warm, apart, so that
+the report can say how much of a call the weight solve is and what is left of the
+target's budget (Clarabel's time / 100) for it.
+
 Then the `large` shapes (n = 48, N = 8) with large_backends only; and, per shape of
 batch_shapes, `fo.fuse_batch` of batch_size random problems with each native backend (one
 call, CPU time / B), of the first batch_small of them, the batched-inverse floor (one
@@ -74,8 +79,10 @@ from pathlib import Path
 import numpy as np
 
 import fusion_opt as fo
-from fusion_opt import criteria, programs
-from fusion_opt.backends import EXACT, REGISTRY, clarabel_direct
+from fusion_opt import core, criteria, programs
+from fusion_opt.assemble import assemble
+from fusion_opt.backends import EXACT, REGISTRY, clarabel_direct, newton
+from fusion_opt.prepare import prepare
 from fusion_opt.scaling import conic_problem
 
 from . import config as configs
@@ -99,6 +106,9 @@ INSTANCE_COLUMNS = ("mode", "call", "backend", "n", "N", "criterion", "kind", "p
 # what `run` measures and `report` reads; the CLI records their SHA-256 and verifies them
 MEASUREMENTS = ("backends.csv", "backends_instances.csv", "machine.json")
 FIRST_BATCH = 10  # problems of the untimed first fuse_batch call (loads, allocates)
+# newton's parts (`_part_rows`), each timed over PART_CALLS calls in a row
+PARTS = ("fo.bci (warm)", "checks and factors", "solve", "assembly")
+PART_CALLS = 20
 
 
 def check(config: dict) -> None:
@@ -314,7 +324,9 @@ def _single_cell(rng, mode, n, N, crit, kind, config) -> tuple[list[dict], list[
     runs = _loop(problems, crit, solvers, mode, config, first=kind == config["kinds"][0])
     where = {"n": n, "N": N, "criterion": crit, "kind": kind}
     gaps = _accuracy(np.stack([c for _, c in problems]), [r.weights for r in runs], crit)
-    return _rows(runs, gaps, where), _instance_rows(runs, gaps, where)
+    parts = _part_rows(problems, crit, where) if not large and "newton" in config["backends"] \
+        else []
+    return _rows(runs, gaps, where) + parts, _instance_rows(runs, gaps, where)
 
 
 def _loop(problems, crit, solvers, mode, config, first) -> list[_Runs]:
@@ -359,6 +371,44 @@ def _solve(runs: _Runs, means, covs, crit, config, first) -> None:
         status = getattr(result, "status", None)
         runs.first_failure = runs.first_failure or (
             f"status {status.value}" if status is not None else "no success")
+
+
+def _part_rows(problems, crit, where) -> list[dict]:
+    """newton's time by part on one cell's problems (`_part_times`): a row per part with
+    the median over the problems of the CPU time per call."""
+    times = np.array([_part_times(means, covs, crit) for means, covs in problems])
+    return [{**dict.fromkeys(COLUMNS, np.nan), "mode": "parts", "call": name,
+             "backend": "newton", **where, "per_call": 1, "solves": len(t) * PART_CALLS,
+             "median_ms": 1e3 * _q(t, 50), "p90_ms": 1e3 * _q(t, 90), "failures": 0,
+             "first_failure": ""} for name, t in zip(PARTS, times.T, strict=True)]
+
+
+def _part_times(means, covs, crit) -> list[float]:
+    """CPU seconds per call of the PARTS of fo.bci newton on one problem (means (N, n),
+    covs (N, n, n)): the whole call and, apart, the three parts of its compiled call
+    (`fuse_exact`): `prepare`'s checks and factors, the weight solve, and the assembly of
+    the fused estimate and its certificate (which inside `fuse_exact` reuses the solve's
+    last QR, so apart it costs a little more). Each is called PART_CALLS times in a row
+    after an untimed call (warm caches, unlike the rotation of `_loop`)."""
+    N, n = means.shape
+    trace = crit == "trace"
+    a, (q, E) = core._Arrays(1, N, n), core._unit_scales(1, N)
+    M, C = means[None].copy(), covs[None].copy()
+    calls = (lambda: fo.bci(means, covs, crit, "newton"),
+             lambda: prepare(M, C, q, E, a.F, a.k, a.vertex, a.pnorm, a.where),
+             lambda: newton.solve(a.F, trace, a.W, False, a.W, a.rel, a.iters),
+             lambda: assemble(a.F, M, C, q, E, a.k, a.vertex, a.pnorm, a.W, trace, a.mean,
+                              a.cov, a.stats))
+    times = []
+    for call in calls:  # in this order: each part reads what the one before it wrote
+        call()
+        times.append(_timed(_repeat, call)[0] / PART_CALLS)
+    return times
+
+
+def _repeat(call) -> None:
+    for _ in range(PART_CALLS):
+        call()
 
 
 def _timed(call, *args, **kwargs):

@@ -263,6 +263,18 @@ def _sections(rows, instances, config, quick, kernel_load) -> list:
          f"## Speed-up of {REFERENCE}", "", f"Median time of each over that of fo.bci "
          f"{REFERENCE}, both the user's call, on the same problems.", ""],
         _speedup_table(single),
+        ["", f"## Where {REFERENCE}'s time goes", "",
+         "Microseconds per call, the mean of the kinds' medians. Benchmark: fo.bci newton "
+         "in the rotation above (the table of times); warm: the same call repeated 20 "
+         "times in a row; then the three parts of its compiled call, timed apart and "
+         "warm: checks and factors (`prepare`), the weight solve, the assembly of the "
+         "fused estimate and its certificate; rest: warm less the parts (Python, "
+         "dispatch). Budget: Clarabel's benchmark time / 100, the target; solve allowed: "
+         "the budget less the benchmark time's part that is not the solve (benchmark - "
+         "solve); speed-up needed: of the solve alone, to meet the target with "
+         "everything else as measured (none: the rest of the call alone is over the "
+         "budget).", ""],
+        _parts_table(rows),
         ["", "## Performance profile", "",
          f"Dolan-More profile of the user's calls over the {grid} problems: the fraction "
          "of problems a call solved (did not fail, objective within the tolerance of the "
@@ -294,7 +306,7 @@ def _sections(rows, instances, config, quick, kernel_load) -> list:
          "np.linalg.inv of the stacked (B, N, n, n) covariances, per problem; loops of "
          f"fo.bci on {config['batch_check']} of the problems, on which the gaps are "
          "computed. Failures: problems not certified optimal.", ""],
-        _batch_table([r for r in rows if r["mode"] not in ("single", "large")])]
+        _batch_table([r for r in rows if r["mode"] not in ("single", "large", "parts")])]
 
 
 def _user_solvers(rows) -> list[tuple]:
@@ -323,6 +335,27 @@ def _speedup_table(single) -> _Table:
         t = _pooled(cell, ref, "median_ms")
         table.rows.append([*key, *(_fmt(_pooled(cell, s, "median_ms") / t, ".3g")
                                    for s in peers)])
+    return table
+
+
+def _parts_table(rows) -> _Table:
+    """newton's time by part per cell (rows of mode "parts") against the target's budget."""
+    table = _Table("parts", ["n", "N", "criterion", "benchmark", "warm",
+                             "checks and factors", "solve", "assembly", "rest", "budget",
+                             "solve allowed", "speed-up needed (x)"], [])
+    single = dict(_cells([r for r in rows if r["mode"] == "single"]))
+    for key, cell in _cells([r for r in rows if r["mode"] == "parts"]):
+        us = {r["call"]: 1e3 * _pooled(cell, (r["call"], REFERENCE), "median_ms")
+              for r in cell}
+        bench = 1e3 * _pooled(single.get(key, []), (BCI, REFERENCE), "median_ms")
+        budget = 10.0 * _pooled(single.get(key, []), (BCI, "clarabel"), "median_ms")
+        parts = [us.get(p, np.nan) for p in ("checks and factors", "solve", "assembly")]
+        allowed = budget - (bench - parts[1])
+        table.rows.append([
+            *key, *(_fmt(x, ".3g") for x in (bench, us.get("fo.bci (warm)", np.nan),
+                                             *parts, us.get("fo.bci (warm)", np.nan)
+                                             - sum(parts), budget, allowed)),
+            "none" if allowed <= 0 else _fmt(parts[1] / allowed, ".3g")])
     return table
 
 

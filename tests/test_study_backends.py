@@ -34,7 +34,7 @@ def _rows(path, name="backends.csv") -> list[dict]:
 def test_backends_study_writes_outputs(tmp_path):
     c = _tiny()
     backends.run(c, tmp_path, quick=True, progress=False)
-    tables = ("targets", "time", "speedup", "pairs", "accuracy", "large", "batch")
+    tables = ("targets", "time", "speedup", "parts", "pairs", "accuracy", "large", "batch")
     for name in ("backends.csv", "backends_instances.csv", "backends.md",
                  "backends_time_vs_N.png", "backends_profile.png", "machine.json",
                  *(f"backends_{t}.csv" for t in tables)):
@@ -67,8 +67,18 @@ def test_backends_study_writes_outputs(tmp_path):
     assert {(r["backend"], r["criterion"]) for r in large} == {
         (b, crit) for b in c["large_backends"] for crit in c["criteria"]}
     # fuse_batch (B and batch_small) per native backend, the floor, loops of fo.bci
+    # newton's parts: each of them once per single cell, timed, a part of the whole call
+    parts = [r for r in rows if r["mode"] == "parts"]
+    cells = {(r["N"], r["criterion"], r["kind"]) for r in single}
+    assert sorted((r["call"], r["N"], r["criterion"], r["kind"]) for r in parts) == sorted(
+        (p, *cell) for p in backends.PARTS for cell in cells)
+    for cell in cells:
+        t = {r["call"]: float(r["median_ms"]) for r in parts
+             if (r["N"], r["criterion"], r["kind"]) == cell}
+        assert all(0 < x < np.inf for x in t.values())
+        assert t["solve"] < t["fo.bci (warm)"]
     batch = {(r["mode"], r["backend"], r["N"]) for r in rows if r["mode"] not in
-             ("single", "large")}
+             ("single", "large", "parts")}
     natives = {2: ("newton", "closed-form"), 3: ("newton",)}
     assert batch == {(m, b, str(N)) for N in (2, 3) for m, bs in
                      (("batch", natives[N]), ("batch-small", natives[N]),
@@ -77,6 +87,7 @@ def test_backends_study_writes_outputs(tmp_path):
                      for b in bs}
     text = (tmp_path / "backends.md").read_text()
     assert "## Targets" in text and "| fo.bci newton at n = 48" in text
+    assert "## Where newton's time goes" in text
     # `report` rebuilds the tables from the CSVs alone, without measuring again
     targets = (tmp_path / "backends_targets.csv").read_text()
     for name in ("backends.md", "backends_targets.csv"):
