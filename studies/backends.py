@@ -87,7 +87,7 @@ from fusion_opt.scaling import conic_problem
 
 from . import config as configs
 from . import meta
-from .backends_report import BCI, CI, RAW, _q, _worst, _write_csv, report
+from .backends_report import BCI, CI, PART_NAMES, RAW, _q, _worst, _write_csv, report
 from .peers import (
     PEERS,
     PeerResult,
@@ -107,7 +107,7 @@ INSTANCE_COLUMNS = ("mode", "call", "backend", "n", "N", "criterion", "kind", "p
 MEASUREMENTS = ("backends.csv", "backends_instances.csv", "machine.json")
 FIRST_BATCH = 10  # problems of the untimed first fuse_batch call (loads, allocates)
 # newton's parts (`_part_rows`), each timed over PART_CALLS calls in a row
-PARTS = ("fo.bci (warm)", "checks and factors", "solve", "assembly")
+PARTS = PART_NAMES
 PART_CALLS = 20
 
 

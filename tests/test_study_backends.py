@@ -88,6 +88,7 @@ def test_backends_study_writes_outputs(tmp_path):
     text = (tmp_path / "backends.md").read_text()
     assert "## Targets" in text and "| fo.bci newton at n = 48" in text
     assert "## Where newton's time goes" in text
+    assert "the call less its weight solve alone" in (tmp_path / "backends_targets.csv").read_text()
     # `report` rebuilds the tables from the CSVs alone, without measuring again
     targets = (tmp_path / "backends_targets.csv").read_text()
     for name in ("backends.md", "backends_targets.csv"):
@@ -328,3 +329,26 @@ def test_weights_off_the_simplex_are_put_on_it_before_the_gaps():
         covs[None], [w[None], (1 + 1e-6) * w[None]], "trace")
     assert abs(gap_up[0]) <= 1e-14 and abs(gap[0]) <= 1e-14 and cert_up[0] <= 1e-12
     assert off[0] <= 1e-15 and off_up[0] == pytest.approx(1e-6, rel=1e-6)
+
+
+def test_the_parts_table_leaves_the_solve_what_the_rest_of_the_call_does_not_take():
+    # budget: Clarabel's 1 ms / 100 = 10 us; newton's benchmark 10 us, of which the solve
+    # takes 4 at (4, 3) (allowed 4 us, speed-up 1x) and 2 at (4, 7) (the rest alone, 8 us
+    # of the 5 us budget there, leaves nothing)
+    rows = []
+    for N, clarabel, solve in ((3, 1.0, 4e-3), (7, 0.5, 2e-3)):
+        rows += [_row("single", BCI, "newton", 4, N, "trace", 0.01),
+                 _row("single", BCI, "clarabel", 4, N, "trace", clarabel)]
+        rows += [_row("parts", p, "newton", 4, N, "trace", t) for p, t in
+                 zip(backends.PARTS, (9e-3, 1e-3, solve, 2e-3), strict=True)]
+    table = backends_report._parts_table(rows)
+    assert table.rows == [
+        [4, 3, "trace", "10", "9", "1", "4", "2", "2", "10", "4", "1"],
+        [4, 7, "trace", "10", "9", "1", "2", "2", "4", "5", "-3", "none"]]
+    assert "; at 1 of them the call less its weight solve alone takes more than " \
+        "Clarabel / 100" in backends_report.targets(rows, [])[0][1]
+    # a store from before the parts were measured: no table, and the target says nothing
+    # of them
+    plain = [r for r in rows if r["mode"] != "parts"]
+    assert backends_report._parts_table(plain).markdown() == ["Not measured in this run."]
+    assert "weight solve" not in backends_report.targets(plain, [])[0][1]
