@@ -389,7 +389,9 @@ def _part_times(means, covs, crit) -> list[float]:
     (`fuse_exact`): `prepare`'s checks and factors, the weight solve, and the assembly of
     the fused estimate and its certificate (which inside `fuse_exact` reuses the solve's
     last QR, so apart it costs a little more). Each is called PART_CALLS times in a row
-    after an untimed call (warm caches, unlike the rotation of `_loop`)."""
+    after an untimed call (warm caches, unlike the rotation of `_loop`), on arrays of the
+    types fo.bci passes (`core._Arrays`, the core's read-only unit scales), so that what is
+    timed is the code compiled for fo.bci, not another specialisation."""
     N, n = means.shape
     trace = crit == "trace"
     a, (q, E) = core._Arrays(1, N, n), core._unit_scales(1, N)
