@@ -376,11 +376,20 @@ def _solve(runs: _Runs, means, covs, crit, config, first) -> None:
 def _part_rows(problems, crit, where) -> list[dict]:
     """newton's time by part on one cell's problems (`_part_times`): a row per part with
     the median over the problems of the CPU time per call."""
-    times = np.array([_part_times(means, covs, crit) for means, covs in problems])
+    times = np.array([_part_times_or_nan(means, covs, crit) for means, covs in problems])
     return [{**dict.fromkeys(COLUMNS, np.nan), "mode": "parts", "call": name,
              "backend": "newton", **where, "per_call": 1, "solves": len(t) * PART_CALLS,
              "median_ms": 1e3 * _q(t, 50), "p90_ms": 1e3 * _q(t, 90), "failures": 0,
              "first_failure": ""} for name, t in zip(PARTS, times.T, strict=True)]
+
+
+def _part_times_or_nan(means, covs, crit) -> list[float]:
+    """`_part_times`, or NaN for each part of a problem fo.bci refuses (the rotation of
+    `_loop` counts that failure already)."""
+    try:
+        return _part_times(means, covs, crit)
+    except Exception:  # noqa: BLE001 (a failure is counted where the user's call is timed)
+        return [np.nan] * len(PARTS)
 
 
 def _part_times(means, covs, crit) -> list[float]:

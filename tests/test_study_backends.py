@@ -352,3 +352,26 @@ def test_the_parts_table_leaves_the_solve_what_the_rest_of_the_call_does_not_tak
     plain = [r for r in rows if r["mode"] != "parts"]
     assert backends_report._parts_table(plain).markdown() == ["Not measured in this run."]
     assert "weight solve" not in backends_report.targets(plain, [])[0][1]
+
+
+def test_a_problem_newton_refuses_leaves_its_parts_unmeasured_not_the_run(tmp_path,
+                                                                        monkeypatch):
+    real = fo.bci
+
+    def refuses(means, covs, criterion="trace", backend=None, **kwargs):
+        if backend == "newton":
+            raise fo.FusionInputError("refused on purpose")
+        return real(means, covs, criterion, backend, **kwargs)
+
+    monkeypatch.setattr(fo, "bci", refuses)
+    c = _tiny(N=[3], kinds=["random"], criteria=["trace"], backends=["newton", "clarabel"],
+              peers=[], large=[], batch_shapes=[[2, 3]])
+    backends.run(c, tmp_path, quick=True, progress=False)
+    parts = [r for r in _rows(tmp_path) if r["mode"] == "parts"]
+    assert len(parts) == len(backends.PARTS)
+    assert all(r["median_ms"] == "nan" for r in parts)
+    newton = [r for r in _rows(tmp_path) if (r["mode"], r["call"], r["backend"]) ==
+              ("single", BCI, "newton")]
+    assert [r["failures"] for r in newton] == [str(c["instances"])]
+    table = (tmp_path / "backends_parts.csv").read_text().splitlines()
+    assert table[1].startswith("2,3,trace,-,-,-,-,-,-,")
