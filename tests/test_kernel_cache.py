@@ -219,3 +219,47 @@ def test_a_kernel_is_compiled_for_the_plain_types_of_constant_arguments():
     kernel.compile((types.literal(True), types.literal(0), types.float64))
     kernel.compile((types.boolean, types.int64, types.float64))
     assert kernel.sigs == [(types.boolean, types.int64, types.float64)] * 2
+
+
+def _kernel(module: str):
+    """A new uncached kernel whose function says it is of `module`."""
+    def twice(x):
+        return 2 * x
+    twice.__module__ = module
+    return numba.njit(cache=False)(twice)
+
+
+def test_the_first_compile_of_a_package_kernel_is_told_once(caplog, monkeypatch):
+    monkeypatch.setattr(linalg._NOTICE, "told", False)
+    with caplog.at_level("WARNING", logger="fusion_opt"):
+        _kernel("elsewhere")(1)  # not the package's: nothing to tell
+        assert caplog.records == []
+        ours = _kernel("fusion_opt.notice_test")
+        ours(1)
+        ours(1.5)  # a second compile, of another signature, is not told again
+        _kernel("fusion_opt.notice_test")(2)
+    assert [(r.name, r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("fusion_opt", "WARNING", linalg.COMPILE_NOTICE)]
+
+
+def test_a_fusion_of_compiled_kernels_tells_nothing(caplog, monkeypatch):
+    import fusion_opt as fo
+
+    fo.warmup(2, 3)  # compiles the kernels (and says so) if they were not cached
+    caplog.clear()
+    monkeypatch.setattr(linalg._NOTICE, "told", False)
+    with caplog.at_level("WARNING", logger="fusion_opt"):
+        fo.bci([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], [[[1.0, 0.0], [0.0, 2.0]]] * 3)
+    assert caplog.records == []
+
+
+def test_the_notice_reaches_stderr_of_a_program_that_configures_no_logging(tmp_path):
+    """With an empty cache, the first compile of a package kernel (here linalg.copy) says
+    so on stderr; the second process, which loads it from the cache, says nothing."""
+    code = "import numpy as np; from fusion_opt import linalg; linalg.copy(np.zeros(3), np.ones(3))"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                           text=True, timeout=300) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
+    assert runs[0].stderr.strip() == linalg.COMPILE_NOTICE
+    assert runs[1].stderr == ""
