@@ -34,8 +34,8 @@ empty cache: `fo.warmup` of both criteria 57.0 -> 43.2 s, `python -m studies run
 level 2, median of 32 problems, run in turn twice; a third run was noisy for both, 235 /
 214 us at (6, 64)): (6, 64) "trace" 206.1 / 206.7-207.3 us, (2, 3) 8.2 / 8.2-8.4, (4, 16)
 "logdet" 31.8-32.1 / 31.9-32.2; level 1 compiled in 39.1 s but ran 3-5 % slower. The first
-compile of a kernel in a process logs COMPILE_NOTICE (`_CompileNotice`), so that a first
-fusion is not a silent minute.
+compile of a kernel in a process logs COMPILE_NOTICE (`NOTICE`), so that a first fusion
+is not a silent minute.
 """
 
 from __future__ import annotations
@@ -195,9 +195,9 @@ def _llvm_level(level: int):
 
 
 COMPILE_NOTICE = (
-    "fusion_opt: compiling its native kernels for this machine, once (about a minute for "
-    "the first fusion: numba caches them on disk, and later processes load them in about "
-    "half a second; fusion_opt.warmup(n, N, criterion) does it ahead of the first fusion)")
+    "fusion_opt: compiling native kernels that numba has not cached on this machine yet "
+    "(about a minute before the first fusion; later processes load them from the cache in "
+    "about half a second; fusion_opt.warmup(n, N, criterion) compiles them ahead)")
 
 
 class _CompileNotice(_numba_event.Listener):
@@ -205,23 +205,31 @@ class _CompileNotice(_numba_event.Listener):
     the application configures no logging), that numba has started compiling one of the
     package's kernels: the first fusion on a machine otherwise sits silent for about a
     minute. numba announces a compile only on a miss of its disk cache, so a fusion whose
-    kernels are cached (or compiled already) never reaches this."""
+    kernels are cached (or compiled already) never reaches this. `quiet` keeps it silent
+    (a worker process whose parent tells instead)."""
 
     def __init__(self):
         self.told = False
 
-    def on_start(self, event):
-        fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)
-        if not self.told and getattr(fn, "__module__", "").startswith("fusion_opt."):
+    def tell(self) -> None:
+        if not self.told:
             self.told = True
             logging.getLogger("fusion_opt").warning(COMPILE_NOTICE)
+
+    def quiet(self) -> None:
+        self.told = True
+
+    def on_start(self, event):
+        fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)
+        if getattr(fn, "__module__", "").startswith("fusion_opt."):
+            self.tell()
 
     def on_end(self, event):
         pass
 
 
-_NOTICE = _CompileNotice()
-_numba_event.register("numba:compile", _NOTICE)
+NOTICE = _CompileNotice()
+_numba_event.register("numba:compile", NOTICE)
 drop_stale_caches(os.path.dirname(os.path.abspath(__file__)))
 jit = _at_level_2(njit(cache=True, error_model="numpy"))
 # For a one-problem step of a batch loop that takes its ~30 work arrays one by one: a

@@ -15,7 +15,8 @@ finished by then, and arrived, are stored before KeyboardInterrupt goes on to th
 
 A local pool first has its workers compile the library's compiled kernels, a part each
 (`fusion_opt.core.compile_part`), which on a machine with a cold cache shortens the first
-runs by a third.
+runs by a third; past a second of it, the pool says once that the kernels are being
+compiled (`fusion_opt.linalg.NOTICE`; the workers themselves say nothing).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from tqdm import tqdm
 from .store import Store
 
 FIGURE_RUN = 0  # the run whose figure data the report draws
+_LOAD_S = 1.0  # the workers' kernels take longer than this only when they are compiled
 
 
 class RunError(RuntimeError):
@@ -131,10 +133,14 @@ class _Serial:
         pass
 
 
-def _ignore_sigint() -> None:
-    """A pool worker's signals: SIGINT ignored, SIGTERM (how the pool ends it) ends it."""
+def _worker() -> None:
+    """A pool worker: SIGINT ignored, SIGTERM (how the pool ends it) ends it; it does not
+    tell of its kernel compiles (`_Pool._compile_kernels` does, once for all workers)."""
+    from fusion_opt.linalg import NOTICE
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    NOTICE.quiet()
 
 
 class _Pool:
@@ -142,7 +148,7 @@ class _Pool:
     process group): the main process decides, and terminates them."""
 
     def __init__(self, workers: int):
-        self._pool = multiprocessing.Pool(workers, initializer=_ignore_sigint)
+        self._pool = multiprocessing.Pool(workers, initializer=_worker)
         self._arrived: queue.SimpleQueue = queue.SimpleQueue()
 
     def results(self, run_one, config, jobs) -> Iterator[tuple]:
@@ -161,7 +167,8 @@ class _Pool:
         """The workers compile the parts of the exact path at once (one each) before the
         runs: on a cold cache 32 s (the parts at once, 23 and 25 s, then 7 s to link them)
         instead of the 47 s each worker would spend on its first fusion (measured at
-        b9e182d); on a warm one, a load of 0.1 s."""
+        b9e182d); on a warm one, a load of 0.1 s. Past a second of it, the kernels are
+        being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
         from fusion_opt.core import KERNEL_PARTS, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results
@@ -169,15 +176,22 @@ class _Pool:
             self._pool.apply_async(compile_part, (part,), callback=compiled.put,
                                    error_callback=compiled.put)
         for _ in KERNEL_PARTS:
-            item = self._next(compiled)
+            item = self._next(compiled, tell_after=_LOAD_S)
             if isinstance(item, BaseException):
                 raise item
 
-    def _next(self, arrived=None):
+    def _next(self, arrived=None, tell_after=None):
+        """The next item of `arrived` (default: the runs'); past tell_after seconds of
+        waiting, the compile notice."""
         arrived = self._arrived if arrived is None else arrived
+        t0 = time.monotonic()
         while True:  # a short timeout keeps the wait responsive to Ctrl-C
             with contextlib.suppress(queue.Empty):
                 return arrived.get(timeout=0.1)
+            if tell_after is not None and time.monotonic() - t0 > tell_after:
+                from fusion_opt.linalg import NOTICE
+
+                NOTICE.tell()
 
     def finished(self) -> list[tuple]:
         items = []

@@ -230,7 +230,7 @@ def _kernel(module: str):
 
 
 def test_the_first_compile_of_a_package_kernel_is_told_once(caplog, monkeypatch):
-    monkeypatch.setattr(linalg._NOTICE, "told", False)
+    monkeypatch.setattr(linalg.NOTICE, "told", False)
     with caplog.at_level("WARNING", logger="fusion_opt"):
         _kernel("elsewhere")(1)  # not the package's: nothing to tell
         assert caplog.records == []
@@ -247,7 +247,7 @@ def test_a_fusion_of_compiled_kernels_tells_nothing(caplog, monkeypatch):
 
     fo.warmup(2, 3)  # compiles the kernels (and says so) if they were not cached
     caplog.clear()
-    monkeypatch.setattr(linalg._NOTICE, "told", False)
+    monkeypatch.setattr(linalg.NOTICE, "told", False)
     with caplog.at_level("WARNING", logger="fusion_opt"):
         fo.bci([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], [[[1.0, 0.0], [0.0, 2.0]]] * 3)
     assert caplog.records == []

@@ -6,6 +6,7 @@ import json
 import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -240,3 +241,43 @@ def test_a_study_whose_extra_is_missing_is_listed_and_refused_in_one_line(tmp_pa
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
         assert "stonesoup: this study needs 'stonesoup'" in err
         assert not (tmp_path / "out").exists()
+
+
+def _compiling_part(part):
+    """A worker's compile_part on a cold cache: longer than the pool waits before telling."""
+    time.sleep(3 * runner._LOAD_S)
+    return 3 * runner._LOAD_S
+
+
+def _loading_part(part):
+    """A worker's compile_part on a warm cache: a load."""
+    return 0.0
+
+
+def _run_that_compiles(config, index, seed):
+    """A run whose worker compiles a kernel (what the compile event does there); its result
+    says whether the notice was silenced in the worker before."""
+    from fusion_opt.linalg import NOTICE
+
+    quiet = NOTICE.told
+    NOTICE.tell()
+    return {"quiet": quiet}, None
+
+
+@pytest.mark.parametrize("part,told", [(_compiling_part, 1), (_loading_part, 0)])
+def test_a_pool_tells_once_that_its_workers_compile_and_they_say_nothing(
+        part, told, monkeypatch, caplog, capfd):
+    import fusion_opt.core
+    from fusion_opt import linalg
+
+    monkeypatch.setattr(fusion_opt.core, "compile_part", part)
+    monkeypatch.setattr(linalg.NOTICE, "told", False)
+    pool = runner._Pool(2)
+    try:
+        with caplog.at_level("WARNING", logger="fusion_opt"):
+            runs = list(pool.results(_run_that_compiles, {}, [(0, None), (1, None)]))
+    finally:
+        pool.close()
+    assert [r.getMessage() for r in caplog.records] == [linalg.COMPILE_NOTICE] * told
+    assert [result["quiet"] for _, result, _, _ in runs] == [True, True]  # the workers'
+    assert linalg.COMPILE_NOTICE not in capfd.readouterr().err
