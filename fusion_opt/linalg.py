@@ -211,10 +211,15 @@ class _CompileNotice(_numba_event.Listener):
     def __init__(self):
         self.told = False
 
-    def tell(self) -> None:
+    def tell(self, write=None) -> None:
+        """The notice, unless told already: logged, or given to write(text) (an
+        application's own channel, such as its progress bar's)."""
         if not self.told:
             self.told = True
-            logging.getLogger("fusion_opt").warning(COMPILE_NOTICE)
+            if write is None:
+                logging.getLogger("fusion_opt").warning(COMPILE_NOTICE)
+            else:
+                write(COMPILE_NOTICE)
 
     def quiet(self) -> None:
         self.told = True

@@ -191,7 +191,7 @@ class _Pool:
             if tell_after is not None and time.monotonic() - t0 > tell_after:
                 from fusion_opt.linalg import NOTICE
 
-                NOTICE.tell()
+                NOTICE.tell(lambda text: tqdm.write(text, file=sys.stderr))  # above the bar
 
     def finished(self) -> list[tuple]:
         items = []
