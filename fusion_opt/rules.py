@@ -141,8 +141,7 @@ def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
     score = np.empty((*lead, N))
     if not _ifci_scores(F.reshape(-1, N, n, n), score.reshape(-1, N)) \
             or not np.isfinite(score).all():
-        raise FusionSolverError("ifci", "numerical_error", "the sum of the informations is "
-                                "not positive definite in double precision", role="method")
+        raise _not_positive_definite("ifci")
     return _ci_with(means, F, score / score.sum(-1, keepdims=True), "ifci", CI_WEIGHTS)
 
 
@@ -234,7 +233,7 @@ def _ci_with(means, F, w, method, weights_are) -> RuleOutput:
     mean, P, shares = np.empty((B, n)), np.empty((B, n, n)), np.empty((B, N))
     if not fuse_at(np.ascontiguousarray(F, dtype=float).reshape(B, N, n, n),
                    np.ascontiguousarray(means, dtype=float).reshape(B, N, n), W, mean, P, shares):
-        mean[:] = np.nan  # refused by _output
+        raise _not_positive_definite(method)
     mean, P, shares = mean.reshape(*lead, n), P.reshape(*lead, n, n), shares.reshape(*lead, N)
     weights = W.reshape(*lead, N) if weights_are == CI_WEIGHTS else shares
     return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
@@ -260,6 +259,11 @@ def _mean(means, shares, apply_gains):
     d = np.ldexp(means, -e) - np.ldexp(ref, -e)
     with np.errstate(over="ignore"):  # a mean beyond the float range: refused in _output
         return ref[..., 0, :] + np.ldexp(apply_gains(d), e[..., 0])
+
+
+def _not_positive_definite(method) -> FusionSolverError:
+    return FusionSolverError(method, "numerical_error", "the sum of the informations is not "
+                             "positive definite in double precision", role="method")
 
 
 def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:

@@ -274,6 +274,24 @@ def test_ifci_refuses_scores_it_cannot_form(monkeypatch):
         fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), "ifci")
 
 
+@pytest.mark.parametrize("method", ["naive", "fast-ci"])
+def test_a_ci_rule_whose_weighted_informations_do_not_factor_is_refused_at_once(
+        method, monkeypatch):
+    """Where the compiled CI formula finds the weighted sum of informations not positive
+    definite, the rule raises, naming itself, without computing on the unset outputs (or
+    warning about them)."""
+    import warnings
+
+    from fusion_opt import rules
+
+    monkeypatch.setattr(rules, "fuse_at", lambda *args: False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(fo.FusionSolverError, match=rf"^method '{method}' failed with "
+                                                       r"status 'numerical_error'"):
+            fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), method)
+
+
 def test_a_rule_whose_trace_overflows_is_refused_without_a_warning():
     """Regression: fast CI of covariances 1e308 I and 1.7e308 I (a fused covariance of
     1.26e308 I, whose trace overflows) was refused, but numpy's overflow warning leaked from
