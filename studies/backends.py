@@ -106,9 +106,7 @@ INSTANCE_COLUMNS = ("mode", "call", "backend", "n", "N", "criterion", "kind", "p
 # what `run` measures and `report` reads; the CLI records their SHA-256 and verifies them
 MEASUREMENTS = ("backends.csv", "backends_instances.csv", "machine.json")
 FIRST_BATCH = 10  # problems of the untimed first fuse_batch call (loads, allocates)
-# newton's parts (`_part_rows`), each timed over PART_CALLS calls in a row
-PARTS = PART_NAMES
-PART_CALLS = 20
+PART_CALLS = 20  # newton's parts (`_part_rows`, PART_NAMES) are each timed over these
 
 
 def check(config: dict) -> None:
@@ -380,7 +378,7 @@ def _part_rows(problems, crit, where) -> list[dict]:
     return [{**dict.fromkeys(COLUMNS, np.nan), "mode": "parts", "call": name,
              "backend": "newton", **where, "per_call": 1, "solves": len(t) * PART_CALLS,
              "median_ms": 1e3 * _q(t, 50), "p90_ms": 1e3 * _q(t, 90), "failures": 0,
-             "first_failure": ""} for name, t in zip(PARTS, times.T, strict=True)]
+             "first_failure": ""} for name, t in zip(PART_NAMES, times.T, strict=True)]
 
 
 def _part_times_or_nan(means, covs, crit) -> list[float]:
@@ -389,11 +387,11 @@ def _part_times_or_nan(means, covs, crit) -> list[float]:
     try:
         return _part_times(means, covs, crit)
     except Exception:  # noqa: BLE001 (a failure is counted where the user's call is timed)
-        return [np.nan] * len(PARTS)
+        return [np.nan] * len(PART_NAMES)
 
 
 def _part_times(means, covs, crit) -> list[float]:
-    """CPU seconds per call of the PARTS of fo.bci newton on one problem (means (N, n),
+    """CPU seconds per call of the PART_NAMES of fo.bci newton on one problem (means (N, n),
     covs (N, n, n)): the whole call and, apart, the three parts of its compiled call
     (`fuse_exact`): `prepare`'s checks and factors, the weight solve, and the assembly of
     the fused estimate and its certificate (which inside `fuse_exact` reuses the solve's

@@ -20,7 +20,7 @@ BCI, CI, RAW = "fo.bci", "fo.ci", "fo.fuse(polish=False)"
 REFERENCE = "newton"  # the backend whose speed-up over the others backends.md reports
 ROUNDING = 1e-12  # objective gaps within this are equal (relative; nats for logdet)
 CERTIFIED = 1e-10  # Status.OPTIMAL's bound on the relative certificate
-# the calls of backends.py's newton parts rows (its PARTS): the whole call, then its parts
+# the calls of backends.py's newton parts rows: the whole call, then the parts it is made of
 PART_NAMES = ("fo.bci (warm)", "checks and factors", "solve", "assembly")
 
 
@@ -153,7 +153,7 @@ def _target_clarabel(rows) -> list[str]:
     if not r:
         return _verdict(target, [], [])
     worst = min(r, key=r.get)
-    allowed = {key: x for key, x in _solve_allowed(rows).items() if key in r}
+    allowed = {key: x[-1] for key, x in _budgets(rows).items() if key in r}
     over = [f"at {sum(x <= 0 for x in allowed.values())} of them the call less its weight "
             "solve, as timed, takes more than Clarabel / 100"] if allowed else []
     return _verdict(target, [f"worst {r[worst]:.3g}x at (n, N) = ({worst[0]}, {worst[1]}) "
@@ -161,18 +161,18 @@ def _target_clarabel(rows) -> list[str]:
                              f"{len(r)} points >= 100x", *over], [x >= 100 for x in r.values()])
 
 
-def _solve_allowed(rows) -> dict:
-    """{(n, N, criterion): microseconds the weight solve may take for fo.bci newton to be
-    100x faster than fo.bci clarabel, everything else as measured}: Clarabel's benchmark
-    time / 100 less newton's benchmark time less its solve (rows of mode "parts"); cells
-    without parts rows are left out."""
+def _budgets(rows) -> dict:
+    """{(n, N, criterion): (microseconds of each of PART_NAMES, then newton's benchmark
+    time, the budget (Clarabel's benchmark time / 100) and the solve allowed (the budget
+    less newton's benchmark time less its solve))} for the cells with rows of mode
+    "parts"."""
     single = dict(_cells([r for r in rows if r["mode"] == "single"]))
     out = {}
     for key, cell in _cells([r for r in rows if r["mode"] == "parts"]):
-        solve = 1e3 * _pooled(cell, ("solve", REFERENCE), "median_ms")
+        parts = [1e3 * _pooled(cell, (p, REFERENCE), "median_ms") for p in PART_NAMES]
         bench = 1e3 * _pooled(single.get(key, []), (BCI, REFERENCE), "median_ms")
-        out[key] = 10.0 * _pooled(single.get(key, []), (BCI, "clarabel"), "median_ms") \
-            - (bench - solve)
+        budget = 10.0 * _pooled(single.get(key, []), (BCI, "clarabel"), "median_ms")
+        out[key] = (*parts, bench, budget, budget - (bench - parts[2]))
     return out
 
 
@@ -365,19 +365,12 @@ def _parts_table(rows) -> _Table:
     table = _Table("parts", ["n", "N", "criterion", "benchmark", "warm",
                              "checks and factors", "solve", "assembly", "rest", "budget",
                              "solve allowed", "speed-up needed (x)"], [])
-    single = dict(_cells([r for r in rows if r["mode"] == "single"]))
-    allowed = _solve_allowed(rows)
-    for key, cell in _cells([r for r in rows if r["mode"] == "parts"]):
-        us = {p: 1e3 * _pooled(cell, (p, REFERENCE), "median_ms") for p in PART_NAMES}
-        parts = [us[p] for p in PART_NAMES[1:]]
+    for key, (warm, checks, solve, assembly, bench, budget, allowed) in _budgets(rows).items():
         table.rows.append([
-            *key, _fmt(1e3 * _pooled(single.get(key, []), (BCI, REFERENCE), "median_ms"),
-                       ".3g"),
-            *(_fmt(x, ".3g") for x in (us[PART_NAMES[0]], *parts,
-                                       us[PART_NAMES[0]] - sum(parts))),
-            _fmt(10.0 * _pooled(single.get(key, []), (BCI, "clarabel"), "median_ms"), ".3g"),
-            _fmt(allowed[key], ".3g"),
-            "none" if allowed[key] <= 0 else _fmt(parts[1] / allowed[key], ".3g")])
+            *key, *(_fmt(x, ".3g") for x in (bench, warm, checks, solve, assembly,
+                                             warm - checks - solve - assembly, budget,
+                                             allowed)),
+            "none" if allowed <= 0 else _fmt(solve / allowed, ".3g")])
     return table
 
 

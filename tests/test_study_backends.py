@@ -71,7 +71,7 @@ def test_backends_study_writes_outputs(tmp_path):
     parts = [r for r in rows if r["mode"] == "parts"]
     cells = {(r["N"], r["criterion"], r["kind"]) for r in single}
     assert sorted((r["call"], r["N"], r["criterion"], r["kind"]) for r in parts) == sorted(
-        (p, *cell) for p in backends.PARTS for cell in cells)
+        (p, *cell) for p in backends_report.PART_NAMES for cell in cells)
     for cell in cells:
         t = {r["call"]: float(r["median_ms"]) for r in parts
              if (r["N"], r["criterion"], r["kind"]) == cell}
@@ -341,7 +341,7 @@ def test_the_parts_table_leaves_the_solve_what_the_rest_of_the_call_does_not_tak
         rows += [_row("single", BCI, "newton", 4, N, "trace", 0.01),
                  _row("single", BCI, "clarabel", 4, N, "trace", clarabel)]
         rows += [_row("parts", p, "newton", 4, N, "trace", t) for p, t in
-                 zip(backends.PARTS, (9e-3, 1e-3, solve, 2e-3), strict=True)]
+                 zip(backends_report.PART_NAMES, (9e-3, 1e-3, solve, 2e-3), strict=True)]
     table = backends_report._parts_table(rows)
     assert table.rows == [
         [4, 3, "trace", "10", "9", "1", "4", "2", "2", "10", "4", "1"],
@@ -369,7 +369,7 @@ def test_a_problem_newton_refuses_leaves_its_parts_unmeasured_not_the_run(tmp_pa
               peers=[], large=[], batch_shapes=[[2, 3]])
     backends.run(c, tmp_path, quick=True, progress=False)
     parts = [r for r in _rows(tmp_path) if r["mode"] == "parts"]
-    assert len(parts) == len(backends.PARTS)
+    assert len(parts) == len(backends_report.PART_NAMES)
     assert all(r["median_ms"] == "nan" for r in parts)
     newton = [r for r in _rows(tmp_path) if (r["mode"], r["call"], r["backend"]) ==
               ("single", BCI, "newton")]
