@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+
 import numpy as np
 from hypothesis import settings
 
@@ -9,6 +11,20 @@ from hypothesis import settings
 # reproducible and cannot fail on an example no earlier run saw.
 settings.register_profile("seeded", derandomize=True, database=None)
 settings.load_profile("seeded")
+
+
+def pytest_configure(config):
+    """Before any test, two processes compile (or load from numba's cache) the exact path's
+    two parts at once, as a study's pool does (`fusion_opt.core.compile_part`): on a
+    machine whose cache is cold, the first fusion test of each test process (two with the
+    default `-n 2` of pyproject.toml) would otherwise compile both parts itself. Not in an
+    xdist worker: the controlling process has done it before starting them."""
+    if hasattr(config, "workerinput"):
+        return
+    from fusion_opt.core import KERNEL_PARTS, compile_part
+
+    with multiprocessing.get_context("fork").Pool(len(KERNEL_PARTS)) as pool:
+        pool.map(compile_part, KERNEL_PARTS)
 
 
 def random_spd(rng: np.random.Generator, n: int, log10_range=(-1.0, 1.0)) -> np.ndarray:
