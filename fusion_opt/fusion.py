@@ -87,15 +87,14 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
         raise FusionInputError(f"covs must have shape (N, n, n), got {covs.shape}")
     req = core.request("bci", criterion, None, {})
     means, covs = core.arrays(np.zeros(covs.shape[:-1]), covs, False)
-    w = real_array(weights, "weights")
+    w = real_array(weights, "weights").copy()  # C-contiguous, writable: one compiled type
     N = covs.shape[1]
     if w.shape != (N,):
         raise FusionInputError(f"weights must have shape ({N},), got {w.shape}")
     if not np.all(np.isfinite(w)) or (w < 0).any() or abs(w.sum() - 1.0) > 1e-9:
         raise FusionInputError("weights must be finite, >= 0 and sum to 1")
     a = core._Arrays(1, N, covs.shape[2])
-    core._prepare(means, covs, np.ones((1, N)), np.zeros((1, N), dtype=np.int64), a,
-                  core._NAMES, False)
+    core._prepare(means, covs, *core._unit_scales(1, N), a, core._NAMES, False)
     gap = newton.certificate(a.F[0], w, work(N, covs.shape[2]), req.trace)[0]
     return float(np.ldexp(gap, a.k[0]) if req.trace else gap)
 

@@ -10,6 +10,7 @@ from conftest import random_instance
 
 import fusion_opt as fo
 from fusion_opt import core
+from fusion_opt.backends import newton
 
 MEANS, COVS = random_instance(np.random.default_rng(0), 3, 4)
 P = [0.9, 0.6, 0.8, 0.7]
@@ -111,8 +112,9 @@ def test_readme_examples_run():
 
 
 def test_one_compiled_specialisation_whatever_the_inputs_flags():
-    """Read-only inputs (an Estimates' arrays), MBCI's own scales and a batch reach the
-    compiled path as the same array types as plain calls, so it is compiled once (15 s
+    """Read-only inputs (an Estimates' arrays), MBCI's own scales, a batch, and weights of
+    any flags given to optimality_gap reach the compiled path as the same array types as
+    plain calls, so it is compiled once (15 s
     each otherwise) and a study pays the compilation once."""
     est = fo.Estimates(MEANS, COVS)
     fo.bci(MEANS, COVS)
@@ -121,6 +123,15 @@ def test_one_compiled_specialisation_whatever_the_inputs_flags():
     fo.fuse_batch(np.stack([est.means] * 3), np.stack([est.covs] * 3), "mbci", p_detect=P,
                   chi=0.9)
     assert len(core.fuse_exact.signatures) == 1, core.fuse_exact.signatures
+    weights = fo.bci(MEANS, COVS).weights  # read-only
+    fo.fuse(MEANS, COVS, method="naive")  # the core's call of prepare from Python
+    fo.optimality_gap(COVS, np.array(weights))
+    kernels = (core.prepare, newton.certificate)
+    before = [set(k.signatures) for k in kernels]
+    for w in (weights, np.stack([weights, weights], 1)[:, 0]):  # read-only, strided
+        fo.optimality_gap(est.covs, w)
+    assert [set(k.signatures) for k in kernels] == before
+    assert len(core.prepare.signatures) == 1, core.prepare.signatures
 
 
 @pytest.mark.parametrize("backend", ["newton", "closed-form", "clarabel-direct"])

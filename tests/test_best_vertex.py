@@ -24,10 +24,10 @@ def _prepared(means, covs, args, trace):
     """The core's arrays of a batch, its scales (q, E) and the SQP's weights."""
     B, N, n = means.shape
     a = core._Arrays(B, N, n)
-    if args:
-        q, E = detection_split(args["p_detect"], args["chi"], N)
+    if args:  # read-only, as the core passes them (one compiled array type)
+        q, E = map(core._read_only, detection_split(args["p_detect"], args["chi"], N))
     else:
-        q, E = np.ones((B, N)), np.zeros((B, N), dtype=np.int64)
+        q, E = core._unit_scales(B, N)
     core._prepare(means, covs, q, E, a, core._NAMES, True)
     W = np.empty((B, N))
     newton.solve(a.F, trace, W, False, W, np.empty(B), np.empty(B, dtype=np.int64))

@@ -253,8 +253,8 @@ def test_assemble_on_the_solvers_factors_equals_assemble_on_its_own(criterion):
             covs = np.stack([extreme_instance(rng, N, n, kind, spread=6) for _ in range(B)])
             means = rng.standard_normal((B, N, n))
             for scales in (None, np.linspace(0.5, 0.95, N)):
-                q, E = (core._unit_scales(B, N) if scales is None else (np.broadcast_to(
-                    x, (B, N)).copy() for x in detection_split(scales, 0.9, N)))
+                q, E = (core._unit_scales(B, N) if scales is None else (core._read_only(
+                    np.broadcast_to(x, (B, N)).copy()) for x in detection_split(scales, 0.9, N)))
                 one, two = core._Arrays(B, N, n), core._Arrays(B, N, n)
                 trace = criterion == "trace"
                 assert core.fuse_exact(means, covs, q, E, trace, one.F, one.k, one.vertex,
