@@ -227,7 +227,9 @@ def _detection(req, B, N, batch):
     if q.shape != (N,) and not (batch and q.shape == (B, N)):
         want = f"a scalar, ({N},) or ({B}, {N})" if batch else f"a scalar or ({N},)"
         raise FusionInputError(f"p_detect and chi (or growth) must be {want}, got {q.shape}")
-    q, E = (_read_only(np.broadcast_to(x, (B, N)).copy()) for x in (q, E))
+    # fresh arrays: (B, N) as they are, else broadcast to it
+    q, E = (_read_only(x.reshape(B, N) if x.size == B * N else np.broadcast_to(x, (B, N)).copy())
+            for x in (q, E))
     return q, E
 
 

@@ -29,6 +29,27 @@ def test_scales_of_the_papers_seven_nodes():
     assert np.all((s > 0) & (s <= 1))
 
 
+def test_scales_broadcast_over_problems_each_row_by_hand():
+    """p (B, N) with chi a scalar, (N,), (1, N) or (B, N), or growth (N,), and leading axes
+    (2, B, N) against (B, N): every row is the hand formula of its own p and chi."""
+    rng = np.random.default_rng(8)
+    B, N = 3, 4
+    p = rng.uniform(0, 1, (B, N))
+    chis = [0.7, rng.uniform(0.1, 1, N), rng.uniform(0.1, 1, (1, N)), rng.uniform(0.1, 1, (B, N))]
+    for chi in chis:
+        s = fo.detection_scales(p, chi)
+        rows = np.broadcast_to(chi, (B, N))
+        for b in range(B):
+            np.testing.assert_allclose(s[b], _scales_by_hand(p[b], rows[b]), rtol=1e-15)
+    g = rng.uniform(1, 3, N)
+    np.testing.assert_array_equal(fo.detection_scales(p, growth=g), fo.detection_scales(p, 1 / g))
+    chi = rng.uniform(0.1, 1, (B, N))
+    s = fo.detection_scales(np.stack([p, p[::-1]]), chi)
+    assert s.shape == (2, B, N)
+    for b in range(B):
+        np.testing.assert_allclose(s[1, b], _scales_by_hand(p[B - 1 - b], chi[b]), rtol=1e-15)
+
+
 def test_scales_of_table_1():
     """p = 0.9, q = 0.7, chi^-1 = 1.025: s_a = 0.9 + 0.1 chi (0.7 + 0.3 chi) by hand."""
     chi = 1 / 1.025
