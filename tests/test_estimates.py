@@ -71,6 +71,17 @@ def test_extreme_values_are_kept_exactly():
     assert ids.tolist() == [2**53, 2**53 + 1]
 
 
+@pytest.mark.parametrize("scale", [1e-318, 1e-300, 1.0, 1e300, 5e307])
+def test_definiteness_is_decided_at_every_scale(scale):
+    """c [[2, 1], [1, 2]] (eigenvalues 3c, c) is kept exactly and c [[1, 2], [2, 1]]
+    (3c, -c) refused, naming the estimate, from subnormal c to entries near 1.8e308."""
+    good, bad = scale * np.array([[2.0, 1.0], [1.0, 2.0]]), scale * np.array([[1.0, 2.0],
+                                                                            [2.0, 1.0]])
+    np.testing.assert_array_equal(fo.Estimates(M, np.stack([good, good])).covs[1], good)
+    with pytest.raises(fo.FusionInputError, match=r"covs of estimate 1 \(id 1\) is not pos"):
+        fo.Estimates(M, np.stack([good, bad]))
+
+
 def test_take_positions_or_a_mask_and_refuses_the_rest():
     """Regression: take([5]) raised IndexError, take([0.5]) truncated to 0, and a boolean
     mask was read as positions 1 and 0."""
