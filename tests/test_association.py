@@ -146,11 +146,15 @@ def test_bad_reports_are_named():
 
 
 def test_components_equal_scipys_connected_components():
-    """The array union of `_nearest` against scipy's graph components on random graphs."""
+    """The union of `_nearest` against scipy's graph components on random graphs: the same
+    partition, each labelled by its smallest point; and the components holding two points
+    of one source against a count of (component, source)."""
+    from collections import Counter
+
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from fusion_opt.association import _components
+    from fusion_opt.association import _components, _repeats_a_source
 
     rng = np.random.default_rng(3)
     for M, P in [(1, 0), (5, 0), (10, 4), (50, 40), (200, 150), (200, 600)]:
@@ -160,6 +164,12 @@ def test_components_equal_scipys_connected_components():
         ref = connected_components(graph, directed=False)[1]
         same, same_ref = label[:, None] == label[None], ref[:, None] == ref[None]
         np.testing.assert_array_equal(same, same_ref)
+        np.testing.assert_array_equal(label, [np.flatnonzero(ref == r).min() for r in ref])
+        owner = rng.integers(0, 4, M)
+        count = Counter(zip(label.tolist(), owner.tolist(), strict=True))
+        repeated = {c for (c, _), k in count.items() if k > 1}
+        np.testing.assert_array_equal(_repeats_a_source(label, owner),
+                                      [c in repeated for c in label.tolist()])
 
 
 @pytest.mark.parametrize("method", fo.association.METHODS)
