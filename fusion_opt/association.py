@@ -279,15 +279,25 @@ def _root(parent, i):
 @jit
 def _repeats_a_source(label, owner):
     """(M,) True for the points of components (labels in [0, M)) holding two estimates of
-    one source (owner (M,) >= 0): equal (component, source) keys are neighbours once
-    sorted."""
+    one source (owner (M,) >= 0): the points ordered by component (a counting sort), each
+    component's sources stamped in turn (O(M) plus one stamp per source)."""
     M = label.size
-    key = label * (owner.max() + 1) + owner
-    order = np.argsort(key)
+    start = np.zeros(M + 1, dtype=np.int64)
+    for i in range(M):
+        start[label[i] + 1] += 1
+    for c in range(M):
+        start[c + 1] += start[c]
+    order, fill = np.empty(M, dtype=np.int64), start[:M].copy()
+    for i in range(M):
+        order[fill[label[i]]] = i
+        fill[label[i]] += 1
+    stamp = np.full(owner.max() + 1, -1)
     repeats = np.zeros(M, dtype=np.bool_)
-    for t in range(1, M):
-        if key[order[t]] == key[order[t - 1]]:
-            repeats[label[order[t]]] = True
+    for c in range(M):
+        for t in range(start[c], start[c + 1]):
+            s = owner[order[t]]
+            repeats[c] |= stamp[s] == c
+            stamp[s] = c
     out = np.empty(M, dtype=np.bool_)
     for i in range(M):
         out[i] = repeats[label[i]]
