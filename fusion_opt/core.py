@@ -283,20 +283,24 @@ class _Arrays:
 _THREAD = threading.local()
 
 
-KERNEL_PARTS = ("solve", "assemble")
+KERNEL_PARTS = ("solve", "assemble", "network")
 
 
 def compile_part(part: str) -> float:
-    """Compile, or load from numba's disk cache, one part of the exact path's kernels
+    """Compile, or load from numba's disk cache, one part of the library's kernels
     ("solve": checks, factors and the weight solvers; "assemble": the fused estimates and
-    their certificate) for the array types `fuse_exact` calls them with; returns the
-    seconds it took. `fuse_exact` links the kernels it calls from their own cache
-    entries, so on a machine whose cache is cold, two processes compiling the parts at
-    once before the first fusion shorten it: 47 s in one process, about 25 s + 7 s
+    their certificate, each for the array types `fuse_exact` calls them with; "network":
+    the checks of an Estimates, MBCI's detection scales and the association of estimates,
+    3.7 s); returns the seconds it took. `fuse_exact` links the kernels it calls from
+    their own cache entries, so on a machine whose cache is cold, processes compiling the
+    parts at once before the first fusion shorten it: 47 s in one process, about 25 s + 7 s
     (measured on 2 cores at b9e182d; `studies/runner.py` has its workers do it)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()
+    if part == "network":
+        _network_kernels()
+        return time.perf_counter() - t0
     B, N, n = 1, 3, 2
     a = _Arrays(B, N, n)
     means, covs = np.zeros((B, N, n)), np.tile(np.eye(n), (B, N, 1, 1))
@@ -309,6 +313,16 @@ def compile_part(part: str) -> float:
         assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, True, a.mean, a.cov,
                  a.stats)
     return time.perf_counter() - t0
+
+
+def _network_kernels() -> None:
+    """One call of each kernel on a network's path that a fusion does not call."""
+    from .association import associate
+    from .estimates import Estimates
+
+    e = Estimates(np.zeros((1, 2)), np.eye(2)[None])
+    associate({0: e, 1: e}, 1.0)
+    detection_split(np.full(3, 0.9), 0.9)
 
 
 def _prepare(means, covs, q, E, a, names, batch):

@@ -14,11 +14,11 @@ settings.load_profile("seeded")
 
 
 def pytest_configure(config):
-    """Before any test, two processes compile (or load from numba's cache) the exact path's
-    two parts at once, as a study's pool does (`fusion_opt.core.compile_part`): on a
-    machine whose cache is cold, the first fusion test of each test process (two with the
-    default `-n 2` of pyproject.toml) would otherwise compile both parts itself. Not in an
-    xdist worker: the controlling process has done it before starting them."""
+    """Before any test, processes compile (or load from numba's cache) the library's
+    kernels, a part each at once, as a study's pool does (`fusion_opt.core.compile_part`):
+    on a machine whose cache is cold, the first fusion test of each test process (two with
+    the default `-n 2` of pyproject.toml) would otherwise compile every part itself. Not in
+    an xdist worker: the controlling process has done it before starting them."""
     if hasattr(config, "workerinput"):
         return
     from fusion_opt.core import KERNEL_PARTS, compile_part

@@ -8,10 +8,11 @@ import sys
 import textwrap
 
 import numba
+import numpy as np
 import pytest
 from numba.core import types
 
-from fusion_opt import linalg
+from fusion_opt import core, linalg
 
 STAMP = "fusion_opt-kernels.stamp"
 
@@ -144,8 +145,6 @@ def test_a_cached_caller_runs_the_edited_kernel(tmp_path, drop):
 
 
 def test_compile_part_refuses_an_unknown_part():
-    from fusion_opt import core
-
     with pytest.raises(ValueError, match="part must be one of"):
         core.compile_part("everything")
 
@@ -157,24 +156,27 @@ def test_the_exact_path_links_the_parts_compiled_by_other_processes(tmp_path):
     instead of compiling them again."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
     part = "from fusion_opt import core; core.compile_part({!r})"
-    for name in ("solve", "assemble"):
+    for name in core.KERNEL_PARTS:
         subprocess.run([sys.executable, "-c", part.format(name)], env=env, check=True)
     first = textwrap.dedent("""
         import numpy as np
         import fusion_opt as fo
-        from fusion_opt import assemble
+        from fusion_opt import assemble, association, detection, validation
         from fusion_opt.backends import newton
         fo.bci(np.zeros((3, 2)), np.stack([np.eye(2)] * 3))
+        e = fo.Estimates(np.zeros((2, 2)), np.stack([np.eye(2)] * 2))
+        fo.ProcessingNode(["a", "b"], method="mbci", threshold=1.0, p_detect={"a": 0.9, "b": 0.8},
+                          chi=0.9).step({"a": e, "b": e})
         # the solver's and the estimates' bulk (fuse_exact inlines the one-problem steps
-        # that call them, `newton.solve_one` and `assemble.assemble_one`)
-        for kernel in (newton._sqp, assemble._vertex_or_interior):
+        # that call them, `newton.solve_one` and `assemble.assemble_one`), and the network's
+        for kernel in (newton._sqp, assemble._vertex_or_interior, validation._spd,
+                       detection._split, association._components):
             print(sum(kernel.stats.cache_hits.values()), sum(kernel.stats.cache_misses.values()))
     """)
-    out = subprocess.run([sys.executable, "-c", first], env=env, check=True,
-                         capture_output=True, text=True).stdout.split()
-    hits_sqp, misses_sqp, hits_assemble, misses_assemble = map(int, out)
-    assert hits_sqp >= 1 and hits_assemble >= 1
-    assert misses_sqp == 0 and misses_assemble == 0
+    out = np.array(subprocess.run([sys.executable, "-c", first], env=env, check=True,
+                                  capture_output=True, text=True).stdout.split(), dtype=int)
+    hits, misses = out[0::2], out[1::2]
+    assert (hits >= 1).all() and (misses == 0).all(), out
 
 
 class _Dispatcher:
