@@ -86,20 +86,31 @@ def _check_values(means, covs, where) -> int:
                 where[1], where[2] = i, j
                 return MEANS_NONFINITE
     for i in range(N):
-        top = 0.0
         for j in range(n):
             for l in range(n):
-                x = covs[i, j, l]
-                if not np.isfinite(x):
+                if not np.isfinite(covs[i, j, l]):
                     where[1], where[2] = i, j * n + l
                     return COVS_NONFINITE
-                top = max(top, abs(x))
-        for j in range(n):
-            for l in range(j + 1, n):
-                if abs(covs[i, j, l] - covs[i, l, j]) > SYMMETRY_RTOL * top:
-                    where[1] = i
-                    return ASYMMETRIC
+        if asymmetric(covs[i]):
+            where[1] = i
+            return ASYMMETRIC
     return OK
+
+
+@jit
+def asymmetric(P) -> bool:
+    """Whether the finite P (n, n) has |P_jl - P_lj| > SYMMETRY_RTOL max |P| somewhere (the
+    one symmetry test of the package's checks: also `validation.check_spd`'s)."""
+    n = P.shape[0]
+    top = 0.0
+    for j in range(n):
+        for l in range(n):
+            top = max(top, abs(P[j, l]))
+    for j in range(n):
+        for l in range(j + 1, n):
+            if abs(P[j, l] - P[l, j]) > SYMMETRY_RTOL * top:
+                return True
+    return False
 
 
 @jit

@@ -12,10 +12,10 @@ from collections.abc import Mapping
 import numpy as np
 
 from .linalg import cholesky, jit
+from .prepare import SYMMETRY_RTOL, asymmetric
 from .results import FusionInputError
 
 CRITERIA = ("trace", "logdet")
-SYMMETRY_RTOL = 1e-8
 
 
 def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
@@ -156,14 +156,8 @@ def _spd(P, S, C, L):
     1e308 or subnormal are tested in float64's normal range."""
     m, n = P.shape[0], P.shape[1]
     for k in range(m):
-        top = 0.0
-        for j in range(n):
-            for i in range(n):
-                top = max(top, abs(P[k, j, i]))
-        for j in range(n):
-            for i in range(j + 1, n):
-                if abs(P[k, j, i] - P[k, i, j]) > SYMMETRY_RTOL * top:
-                    return _ASYMMETRIC, k
+        if asymmetric(P[k]):
+            return _ASYMMETRIC, k
     finite = True
     for k in range(m):
         for j in range(n):

@@ -164,11 +164,12 @@ class _Pool:
             yield item
 
     def _compile_kernels(self) -> None:
-        """The workers compile the parts of the exact path at once (one each) before the
-        runs: on a cold cache 32 s (the parts at once, 23 and 25 s, then 7 s to link them)
-        instead of the 47 s each worker would spend on its first fusion (measured at
-        b9e182d); on a warm one, a load of 0.1 s. Past a second of it, the kernels are
-        being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
+        """The workers compile the library's kernel parts at once (one each, KERNEL_PARTS)
+        before the runs: on a cold cache 32 s (the exact path's two parts at once, 23 and
+        25 s, then 7 s to link them) instead of the 47 s each worker would spend on its
+        first fusion (measured at b9e182d); the network's part (3.7 s) runs beside them, in
+        the first worker free. On a warm cache, a load of 0.1 s. Past a second of it, the
+        kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
         from fusion_opt.core import KERNEL_PARTS, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results
