@@ -9,9 +9,10 @@ finished run is committed to the store as it arrives, so an interrupted study re
 where it stopped, with no run lost or repeated.
 
 Ctrl-C (SIGINT) stops at once, and so does SIGTERM (the CLI raises KeyboardInterrupt on
-either): the serial runner is interrupted inside its run; pool
-workers ignore SIGINT and are terminated without waiting for their runs. Runs that have
-finished by then, and arrived, are stored before KeyboardInterrupt goes on to the caller.
+either): the serial runner is interrupted inside its run; pool workers ignore SIGINT, run
+in process groups of their own (`_worker`), and are terminated without waiting for their
+runs. Runs that have finished by then, and arrived, are stored before KeyboardInterrupt
+goes on to the caller.
 
 A local pool first has its workers compile the library's compiled kernels, a part each
 (`fusion_opt.core.compile_part`), which on a machine with a cold cache shortens the first
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+import os
 import queue
 import signal
 import sys
@@ -134,10 +136,16 @@ class _Serial:
 
 
 def _worker() -> None:
-    """A pool worker: SIGINT ignored, SIGTERM (how the pool ends it) ends it; it does not
-    tell of its kernel compiles (`_Pool._compile_kernels` does, once for all workers)."""
+    """A pool worker: SIGINT ignored, SIGTERM (how the pool ends it) ends it, in a process
+    group of its own; it does not tell of its kernel compiles (`_Pool._compile_kernels`
+    does, once for all workers). Its own group keeps a signal sent to the study's group
+    (kill -TERM -PGID, a service manager's stop) from the worker: one killed by it while
+    taking its next task left the lock of the pool's task queue held, and the pool's
+    terminate then waited for that lock for ever (the SIGTERM test with 2 workers hung,
+    once in about 10 runs). The main process ends the workers, as on Ctrl-C."""
     from fusion_opt.linalg import NOTICE
 
+    os.setpgrp()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     NOTICE.quiet()

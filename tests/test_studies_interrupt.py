@@ -111,3 +111,26 @@ def test_ctrl_c_or_sigterm_stops_within_2_s_and_the_study_resumes(config, uninte
         f"interrupted: {stored} of {RUNS} runs of table1 are stored")
     assert "Traceback" not in err
     _resumes(config, tmp_path, uninterrupted)
+
+
+def test_a_signal_to_the_group_of_a_study_with_idle_workers_does_not_hang_its_pool():
+    """Regression: pool workers shared the study's process group, so a SIGTERM to the group
+    (kill -TERM -PGID) killed an idle worker inside the task queue's lock, and the pool's
+    terminate then waited for that lock for ever (the 2-worker SIGTERM test hung once in
+    about 10 runs; this setting, workers idle when the signal lands, hung every time)."""
+    script = (
+        "import os, signal, time\n"
+        "from studies import runner\n"
+        "pool = runner._Pool(2)\n"
+        "pool._pool.map(abs, range(4))  # then both workers wait for a task\n"
+        "time.sleep(0.5)\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "os.killpg(os.getpgrp(), signal.SIGTERM)\n"
+        "time.sleep(0.3)\n"
+        "pool.close()\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, start_new_session=True)
+    try:
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
