@@ -283,44 +283,68 @@ class _Arrays:
 _THREAD = threading.local()
 
 
-KERNEL_PARTS = ("solve", "assemble", "network")
+# The parts of the library's kernels (`compile_part`), by stage: the parts of a stage can
+# compile at once, in separate processes (longest first); "fuse" links the kernels of
+# "solve" and "assemble" from their cache entries, so its stage starts after theirs.
+KERNEL_STAGES = (("solve", "assemble", "conic", "rules"), ("fuse", "network"))
+KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
 
 def compile_part(part: str) -> float:
-    """Compile, or load from numba's disk cache, one part of the library's kernels
-    ("solve": checks, factors and the weight solvers; "assemble": the fused estimates and
-    their certificate, each for the array types `fuse_exact` calls them with; "network":
-    the checks of an Estimates, MBCI's detection scales and the association of estimates,
-    3.7 s); returns the seconds it took. `fuse_exact` links the kernels it calls from
-    their own cache entries, so on a machine whose cache is cold, processes compiling the
-    parts at once before the first fusion shorten it: 47 s in one process, about 25 s + 7 s
-    (measured on 2 cores at b9e182d; `studies/runner.py` has its workers do it)."""
+    """Compile, or load from numba's disk cache, one part of the library's kernels, each
+    for the array types the library calls it with; returns the seconds it took. "solve":
+    checks, factors and the weight solvers; "assemble": the fused estimates and their
+    certificate; "conic": the scaled data a conic backend receives and the certificates of
+    its polish; "rules": the fixed-weight rules' (fast-ci, ifci) and `optimality_gap`'s
+    kernels; "fuse": `fuse_exact`, the whole exact path, from the kernels of "solve" and
+    "assemble"; "network": the checks of an Estimates, MBCI's detection scales and the
+    association of estimates. On a cold cache, processes compiling a stage's parts at once
+    (KERNEL_STAGES) shorten the first fusion: 60-66 s in one process, about 30 s + 7 s on
+    2 cores (`studies/runner.py` has its workers do it, as tests/conftest.py does)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()
-    if part == "network":
-        _network_kernels()
+    if part in ("rules", "network"):
+        (_rule_kernels if part == "rules" else _network_kernels)()
         return time.perf_counter() - t0
     B, N, n = 1, 3, 2
     a = _Arrays(B, N, n)
     means, covs = np.zeros((B, N, n)), np.tile(np.eye(n), (B, N, 1, 1))
     q, E = _unit_scales(B, N)
+    if part == "fuse":
+        fuse_exact(means, covs, q, E, True, a.F, a.k, a.vertex, a.pnorm, a.where, a.W, a.rel,
+                   a.iters, a.mean, a.cov, a.stats)
+        return time.perf_counter() - t0
     prepare(means, covs, q, E, a.F, a.k, a.vertex, a.pnorm, a.where)
     a.W[:] = 1.0 / N
     if part == "solve":
         newton.solve(a.F, True, a.W, False, a.W, a.rel, a.iters)
-    else:
+    elif part == "assemble":
         assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, True, a.mean, a.cov,
                  a.stats)
+    else:
+        conic_data(a.F, np.empty((B, N, n, n)), np.empty((B, n, n)))
+        newton.certificates(a.F, a.W, True, a.rel)
     return time.perf_counter() - t0
 
 
+def _rule_kernels() -> None:
+    """One call of each kernel of the rules and of `optimality_gap`."""
+    from .fusion import fuse, optimality_gap
+
+    means, covs = np.zeros((3, 2)), np.tile(np.eye(2), (3, 1, 1))
+    for method in ("fast-ci", "ifci"):
+        fuse(means, covs, method)
+    optimality_gap(covs, np.full(3, 1 / 3))
+
+
 def _network_kernels() -> None:
-    """One call of each kernel on a network's path that a fusion does not call."""
+    """One call of each kernel on a network's path that a fusion does not call (two
+    reports of each source at one point: a group that repeats a source is split)."""
     from .association import associate
     from .estimates import Estimates
 
-    e = Estimates(np.zeros((1, 2)), np.eye(2)[None])
+    e = Estimates(np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1)))
     associate({0: e, 1: e}, 1.0)
     detection_split(np.full(3, 0.9), 0.9)
 

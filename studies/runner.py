@@ -172,28 +172,29 @@ class _Pool:
             yield item
 
     def _compile_kernels(self) -> None:
-        """The workers compile the library's kernel parts at once (one each, KERNEL_PARTS)
-        before the runs: on a cold cache 32 s (the exact path's two parts at once, 23 and
-        25 s, then 7 s to link them) instead of the 47 s each worker would spend on its
-        first fusion (measured at b9e182d); the network's part (3.7 s) runs beside them, in
-        the first worker free. On a warm cache, a load of 0.1 s. Past a second of it, the
+        """The workers compile the library's kernels before the runs, stage by stage, the
+        parts of a stage at once (`fusion_opt.core.KERNEL_STAGES`): on a cold cache and 2
+        cores, about 30 s and then 7 s, instead of each worker compiling all of it on its
+        first runs (60-66 s). On a warm cache, a load of 0.1 s. Past a second of it, the
         kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
-        from fusion_opt.core import KERNEL_PARTS, compile_part
+        from fusion_opt.core import KERNEL_STAGES, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results
-        for part in KERNEL_PARTS:
-            self._pool.apply_async(compile_part, (part,), callback=compiled.put,
-                                   error_callback=compiled.put)
-        for _ in KERNEL_PARTS:
-            item = self._next(compiled, tell_after=_LOAD_S)
-            if isinstance(item, BaseException):
-                raise item
-
-    def _next(self, arrived=None, tell_after=None):
-        """The next item of `arrived` (default: the runs'); past tell_after seconds of
-        waiting, the compile notice."""
-        arrived = self._arrived if arrived is None else arrived
         t0 = time.monotonic()
+        for parts in KERNEL_STAGES:
+            for part in parts:
+                self._pool.apply_async(compile_part, (part,), callback=compiled.put,
+                                       error_callback=compiled.put)
+            for _ in parts:
+                item = self._next(compiled, tell_after=_LOAD_S, since=t0)
+                if isinstance(item, BaseException):
+                    raise item
+
+    def _next(self, arrived=None, tell_after=None, since=None):
+        """The next item of `arrived` (default: the runs'); past tell_after seconds of
+        waiting (since the monotonic time `since`, default now), the compile notice."""
+        arrived = self._arrived if arrived is None else arrived
+        t0 = time.monotonic() if since is None else since
         while True:  # a short timeout keeps the wait responsive to Ctrl-C
             with contextlib.suppress(queue.Empty):
                 return arrived.get(timeout=0.1)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import os
 
 import numpy as np
 from hypothesis import settings
@@ -15,16 +16,19 @@ settings.load_profile("seeded")
 
 def pytest_configure(config):
     """Before any test, processes compile (or load from numba's cache) the library's
-    kernels, a part each at once, as a study's pool does (`fusion_opt.core.compile_part`):
-    on a machine whose cache is cold, the first fusion test of each test process (two with
-    the default `-n 2` of pyproject.toml) would otherwise compile every part itself. Not in
-    an xdist worker: the controlling process has done it before starting them."""
+    kernels, stage by stage, the parts of a stage at once, as a study's pool does
+    (`fusion_opt.core.compile_part`, KERNEL_STAGES): on a machine whose cache is cold,
+    each test process (two with the default `-n 2` of pyproject.toml) would otherwise
+    compile what its first tests call itself, the same kernels in both. Not in an xdist
+    worker: the controlling process has done it before starting them."""
     if hasattr(config, "workerinput"):
         return
-    from fusion_opt.core import KERNEL_PARTS, compile_part
+    from fusion_opt.core import KERNEL_STAGES, compile_part
 
-    with multiprocessing.get_context("fork").Pool(len(KERNEL_PARTS)) as pool:
-        pool.map(compile_part, KERNEL_PARTS)
+    processes = min(max(map(len, KERNEL_STAGES)), os.cpu_count() or 1)
+    with multiprocessing.get_context("fork").Pool(processes) as pool:
+        for stage in KERNEL_STAGES:
+            pool.map(compile_part, stage, chunksize=1)
 
 
 def random_spd(rng: np.random.Generator, n: int, log10_range=(-1.0, 1.0)) -> np.ndarray:

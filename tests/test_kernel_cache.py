@@ -8,7 +8,6 @@ import sys
 import textwrap
 
 import numba
-import numpy as np
 import pytest
 from numba.core import types
 
@@ -150,33 +149,47 @@ def test_compile_part_refuses_an_unknown_part():
 
 
 @pytest.mark.slow
-def test_the_exact_path_links_the_parts_compiled_by_other_processes(tmp_path):
-    """What studies/runner.py relies on: after other processes compiled the parts
-    (`core.compile_part`) into a cold cache, the first fusion loads them from the cache
-    instead of compiling them again."""
+def test_after_the_parts_compiled_by_other_processes_a_user_compiles_nothing(tmp_path):
+    """What studies/runner.py and tests/conftest.py rely on: after other processes compiled
+    the parts (`core.compile_part`, stage by stage) into a cold cache, the library's calls
+    load every kernel from the cache: numba compiles nothing."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
     part = "from fusion_opt import core; core.compile_part({!r})"
-    for name in core.KERNEL_PARTS:
-        subprocess.run([sys.executable, "-c", part.format(name)], env=env, check=True)
-    first = textwrap.dedent("""
+    for stage in core.KERNEL_STAGES:
+        for name in stage:
+            subprocess.run([sys.executable, "-c", part.format(name)], env=env, check=True)
+    calls = textwrap.dedent("""
         import numpy as np
+        from numba.core import event
+        compiled = []
+        class Listener(event.Listener):
+            def on_start(self, e):
+                compiled.append(e.data["dispatcher"].py_func.__qualname__)
+            def on_end(self, e):
+                pass
+        event.register("numba:compile", Listener())
         import fusion_opt as fo
-        from fusion_opt import assemble, association, detection, validation
-        from fusion_opt.backends import newton
-        fo.bci(np.zeros((3, 2)), np.stack([np.eye(2)] * 3))
-        e = fo.Estimates(np.zeros((2, 2)), np.stack([np.eye(2)] * 2))
-        fo.ProcessingNode(["a", "b"], method="mbci", threshold=1.0, p_detect={"a": 0.9, "b": 0.8},
-                          chi=0.9).step({"a": e, "b": e})
-        # the solver's and the estimates' bulk (fuse_exact inlines the one-problem steps
-        # that call them, `newton.solve_one` and `assemble.assemble_one`), and the network's
-        for kernel in (newton._sqp, assemble._vertex_or_interior, validation._spd,
-                       detection._split, association._components):
-            print(sum(kernel.stats.cache_hits.values()), sum(kernel.stats.cache_misses.values()))
+        C = np.stack([np.eye(3) * (i + 1) for i in range(4)])
+        M = np.arange(12.0).reshape(4, 3)
+        for criterion in ("trace", "logdet"):
+            fo.bci(M, C, criterion)
+            fo.bci(M, C, criterion, "clarabel")
+            for backend in ("newton", "closed-form"):
+                fo.ci(M[0], C[0], M[1], C[1], criterion, backend)
+        fo.mbci(M, C, p_detect=[0.9, 0.8, 0.7, 0.6], chi=0.9)
+        fo.fuse_batch(M[None], C[None])
+        for method in ("fast-ci", "ifci"):
+            fo.fuse(M, C, method)
+        fo.optimality_gap(C, np.full(4, 0.25))
+        e = fo.Estimates(np.zeros((2, 3)), C[:2])  # two reports of a source at one point
+        fo.associate({0: e, 1: e}, 1.0)
+        fo.ProcessingNode(["a", "b"], method="mbci", threshold=1.0,
+                          p_detect={"a": 0.9, "b": 0.8}, chi=0.9).step({"a": e, "b": e})
+        print(compiled)
     """)
-    out = np.array(subprocess.run([sys.executable, "-c", first], env=env, check=True,
-                                  capture_output=True, text=True).stdout.split(), dtype=int)
-    hits, misses = out[0::2], out[1::2]
-    assert (hits >= 1).all() and (misses == 0).all(), out
+    out = subprocess.run([sys.executable, "-c", calls], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    assert out.strip() == "[]", out
 
 
 class _Dispatcher:

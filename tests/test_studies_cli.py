@@ -244,9 +244,10 @@ def test_a_study_whose_extra_is_missing_is_listed_and_refused_in_one_line(tmp_pa
 
 
 def _compiling_part(part):
-    """A worker's compile_part on a cold cache: longer than the pool waits before telling."""
-    time.sleep(3 * runner._LOAD_S)
-    return 3 * runner._LOAD_S
+    """A worker's compile_part on a cold cache: the stages' parts (three rounds of them on
+    two workers) take longer than the pool waits before telling."""
+    time.sleep(0.6 * runner._LOAD_S)
+    return 0.6 * runner._LOAD_S
 
 
 def _loading_part(part):
