@@ -39,7 +39,7 @@ from .estimates import Estimates, track_ids
 from .limits import limits
 from .linalg import jit
 from .results import FusionInputError
-from .validation import hashable
+from .validation import finite_real, hashable
 
 __all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
@@ -106,7 +106,7 @@ def associate(reports: Mapping[Hashable, Estimates], threshold: float,
               method: str = "nearest", dims=None) -> list[Group]:
     """Groups of the estimates in `reports` (source -> Estimates), by `method` (module
     docstring); groups are ordered by their first member in the order of the reports."""
-    check_threshold(threshold)
+    threshold = check_threshold(threshold)
     check_method(method)
     dims = check_dims(dims)  # a list: an iterator is read once
     names, reports = _check_reports(reports)
@@ -124,10 +124,10 @@ def associate(reports: Mapping[Hashable, Estimates], threshold: float,
 
 
 def check_threshold(threshold) -> float:
-    if (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
-            or not np.isfinite(threshold) or threshold <= 0):
+    value = finite_real(threshold)
+    if value is None or value <= 0:
         raise FusionInputError(f"threshold must be a positive finite distance, got {threshold!r}")
-    return float(threshold)
+    return value
 
 
 def check_method(method) -> str:

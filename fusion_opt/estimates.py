@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .limits import estimates_bytes, fits
 from .results import FusionInputError
-from .validation import check_spd, finite_array, hashable, real_array
+from .validation import check_spd, finite_array, finite_real, hashable, real_array
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +58,7 @@ class Estimates:
         """No estimate of an n-dimensional state (a step with nothing to report)."""
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
             raise FusionInputError(f"n must be an integer >= 1, got {n!r}")
+        fits(f"n = {n}", estimates_bytes(1, n))  # an estimate of a later step
         return cls(np.zeros((0, n)), np.zeros((0, n, n)), None, time, node)
 
     def __len__(self) -> int:
@@ -96,6 +98,7 @@ def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise FusionInputError(f"means must have shape (m, n) with n >= 1, got "
                                f"{means.shape}{hint}")
     m, n = means.shape
+    fits(f"means: {m} estimates of dimension {n}", estimates_bytes(m, n))
     ids = track_ids(ids, m)
     covs = finite_array(covs, "covs")
     if covs.shape != (m, n, n):
@@ -131,6 +134,7 @@ def check_time(time) -> float | None:
     """A time stamp: None or a finite real number, as a float."""
     if time is None:
         return None
-    if isinstance(time, bool) or not isinstance(time, numbers.Real) or not np.isfinite(time):
+    value = finite_real(time)
+    if value is None:
         raise FusionInputError(f"time must be a finite real number or None, got {time!r}")
-    return float(time)
+    return value

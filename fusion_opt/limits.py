@@ -18,12 +18,16 @@ working_memory: the estimated memory of the native solvers' work arrays for one 
     for any method, a whole batch's arrays (`batch_bytes`).
 array_memory: the estimated memory of the arrays a tracker (its particles and a step's
     temporaries) or a scenario simulator (a run's truth and measurements) allocates,
-    checked when it is configured.
+    checked when it is configured, and of an Estimates' checked copies
+    (`estimates_bytes`), checked before they are made.
 """
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
+
+from .results import FusionInputError
 
 _GIB = 2**30
 
@@ -37,8 +41,17 @@ class Limits:
     array_memory: float = 4 * _GIB
 
     def __setattr__(self, name, value):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-            raise ValueError(f"limits.{name} must be a positive number of bytes, got {value!r}")
+        if name not in self.__dataclass_fields__:  # a misspelt limit would do nothing
+            raise AttributeError(f"fusion_opt.limits has no limit {name!r}; its limits are "
+                                 f"{tuple(self.__dataclass_fields__)}")
+        try:
+            ok = not isinstance(value, bool) and isinstance(value, numbers.Real) \
+                and float(value) > 0
+        except OverflowError:  # an int past the float range (10**400)
+            ok = False
+        if not ok:
+            raise ValueError(f"limits.{name} must be a positive number of bytes (inf: no "
+                             f"limit), got {value!r}")
         super().__setattr__(name, float(value))
 
 
@@ -64,3 +77,19 @@ def working_bytes(n: int, N: int, backend: str | None = None) -> float:
     workspace for backend "slsqp"."""
     slsqp = 10.0 * (N + 1) ** 2 if backend == "slsqp" else 0.0
     return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n + slsqp)
+
+
+def estimates_bytes(m: int, n: int) -> float:
+    """Estimated bytes of an Estimates of m estimates of an n-dimensional state as it is
+    built: its copies of the means and ids, and of the covariances three times (the
+    checks' symmetrised stack, its frozen copy and the finiteness mask, counted as one)."""
+    return 8.0 * m * (n + 1 + 3.0 * n * n)
+
+
+def fits(what: str, n_bytes: float) -> None:
+    """Refuses (FusionInputError), before allocating, arrays of about n_bytes over
+    array_memory; `what` names the arguments that set their size."""
+    if n_bytes > limits.array_memory:
+        raise FusionInputError(
+            f"{what}: about {n_bytes / 2**30:.3g} GiB of arrays, over the limit of "
+            f"{limits.array_memory / 2**30:.3g} GiB (fusion_opt.limits.array_memory)")

@@ -48,7 +48,7 @@ from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates, check_time
 from .results import FusionInputError
-from .validation import hashable
+from .validation import finite_real, hashable
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
 PAIRWISE = ("ci", "ici", "ei")
@@ -212,7 +212,7 @@ class ProcessingNode:
         """({source: p}, chi) for "mbci"; (None, None) otherwise."""
         if self.method != "mbci":
             given = [name for name, stray in (("p_detect", p_detect is not None),
-                                              ("chi", not (_real(chi) and chi == 1.0)),
+                                              ("chi", finite_real(chi) != 1.0),
                                               ("growth", growth is not None)) if stray]
             if given:
                 raise self._err(f"{' and '.join(given)} apply to method 'mbci', not "
@@ -226,21 +226,24 @@ class ProcessingNode:
         if missing or unknown:
             raise self._err(f"p_detect must name exactly the sources: missing {missing}, "
                             f"unknown {unknown}")
-        for s in self.sources:
-            if not _real(p_detect[s]) or not 0.0 <= p_detect[s] <= 1.0:
+        p = {s: finite_real(p_detect[s]) for s in self.sources}
+        for s, value in p.items():
+            if value is None or not 0.0 <= value <= 1.0:
                 raise self._err(f"p_detect of source {s!r} must be a number in [0, 1], got "
                                 f"{p_detect[s]!r}")
+        value = finite_real(chi)
         if growth is not None:
-            if not (_real(chi) and chi == 1.0):
+            if value != 1.0:
                 raise self._err("give chi or growth (= 1 / chi), not both")
-            if not _real(growth) or not 1.0 <= growth < np.inf:
+            g = finite_real(growth)
+            if g is None or g < 1.0:
                 raise self._err(f"growth must be one finite number >= 1, the same for every "
                                 f"source, got {growth!r}")
-            chi = 1.0 / growth
-        if not _real(chi) or not 0.0 < chi <= 1.0:
+            value = 1.0 / g
+        if value is None or not 0.0 < value <= 1.0:
             raise self._err(f"chi must be one number in (0, 1], the same for every source, "
                             f"got {chi!r}")
-        return {s: float(p_detect[s]) for s in self.sources}, float(chi)
+        return p, value
 
     def _check_min_sources(self, min_sources) -> int:
         if (isinstance(min_sources, bool) or not isinstance(min_sources, numbers.Integral)
@@ -307,6 +310,3 @@ def _check_name(name):
         raise FusionInputError(f"ProcessingNode: name must be hashable, got {name!r}")
     return name
 
-
-def _real(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, numbers.Real) and bool(np.isfinite(x))

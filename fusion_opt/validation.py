@@ -7,6 +7,7 @@ problem) index and what is wrong, so a bad input never reaches a solver or turns
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 
 import numpy as np
@@ -25,6 +26,19 @@ def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
         label = "" if labels is None else f" (id {labels[index[0]]})"
         return f"{item} {index[0]}{label}"
     return f"problem {index[:-1] if len(index) > 2 else index[0]}, {item} {index[-1]}"
+
+
+def finite_real(x) -> float | None:
+    """x as a float when it is a real number (not a bool) whose float is finite, else None:
+    a numpy scalar, a Fraction or a Python int of any size is a real number, and one whose
+    float overflows (10**400, or 10**20 ** 20) is refused, not crashed on."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        return None
+    try:
+        f = float(x)
+    except (OverflowError, ValueError, TypeError):
+        return None
+    return f if math.isfinite(f) else None
 
 
 def hashable(value) -> bool:

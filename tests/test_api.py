@@ -79,8 +79,13 @@ def test_limits_are_settable_and_checked(monkeypatch):
     fo.limits.working_memory = 1e3
     with pytest.raises(fo.FusionSolverError, match="working_memory"):
         fo.bci(MEANS, COVS)
-    with pytest.raises(ValueError, match="positive number of bytes"):
-        fo.limits.working_memory = -1
+    for bad in (-1, 10**400, float("nan"), True, "1e9"):  # 10**400: past the float range
+        with pytest.raises(ValueError, match="limits.working_memory must be a positive"):
+            fo.limits.working_memory = bad
+    fo.limits.working_memory = np.int64(2**33)
+    assert fo.limits.working_memory == 2.0**33
+    with pytest.raises(AttributeError, match="no limit 'working_memroy'"):
+        fo.limits.working_memroy = 1e9  # misspelt: would change nothing
 
 
 def test_an_uncertified_native_solve_is_rescued_from_clarabels_weights(monkeypatch):

@@ -200,10 +200,11 @@ def test_dims_may_be_an_iterator():
 
 def test_joining_pair_by_pair_checks_the_memory_limit(monkeypatch):
     """The compiled joins keep an estimates x sources table: checked before allocating."""
+    reports = _reports([[0.0, 0.0], [0.2, 0.0]], [[0.1, 0.0]])
     monkeypatch.setattr(fo.limits, "array_memory", fo.limits.array_memory)
     fo.limits.array_memory = 4.0  # 2 estimates of s0 and one of s1 in one component: 3 x 2
     with pytest.raises(fo.FusionInputError, match="3 estimates from 2 sources"):
-        fo.associate(_reports([[0.0, 0.0], [0.2, 0.0]], [[0.1, 0.0]]), 1.0)
+        fo.associate(reports, 1.0)
 
 
 def test_candidate_pairs_hold_every_pair_closer_than_the_threshold():

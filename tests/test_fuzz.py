@@ -695,6 +695,23 @@ BAD = [  # (id, call, the argument the message must name)
     ("associate method", lambda: fo.associate({"a": EST}, 1.0, method=["nearest"]),
      "method"),
     ("warmup n", lambda: fo.warmup(1.5, 3), "n"),
+    # numbers past the float range (10**400), which crashed np.isfinite with a TypeError
+    ("associate threshold 1e400", lambda: fo.associate({"a": EST}, 10**400), "threshold"),
+    ("node threshold 1e400", lambda: fo.ProcessingNode(["a"], method="bci",
+                                                       threshold=10**400), "threshold"),
+    ("node growth 1e400", lambda: fo.ProcessingNode(["a"], threshold=1.0, p_detect={"a": 1},
+                                                    growth=10**400), "growth"),
+    ("node chi 1e20", lambda: fo.ProcessingNode(["a"], threshold=1.0, p_detect={"a": 1},
+                                                chi=10**20), "chi"),
+    ("node p 1e400", lambda: fo.ProcessingNode(["a"], threshold=1.0, p_detect={"a": 10**400},
+                                               chi=0.5), "p_detect"),
+    ("estimates time 1e400", lambda: fo.Estimates(M2, C2, time=10**400), "time"),
+    ("network time 1e400", lambda: fo.Network({}, {}).step({}, time=10**400), "time"),
+    # memory, refused before the copies are made
+    ("empty n 1e12", lambda: fo.Estimates.empty(10**12), "n = 1000000000000"),
+    ("estimates over memory", lambda: fo.Estimates(np.broadcast_to(np.zeros(8), (10**7, 8)),
+                                                   np.broadcast_to(np.eye(8), (10**7, 8, 8))),
+     "means"),
     ("batch means 2-D", lambda: fo.fuse_batch(M3, C3), "means"),
     ("batch covs mismatch", lambda: fo.fuse_batch(M3[None], C3[None, :2]), "covs"),
     ("batch empty", lambda: fo.fuse_batch(np.zeros((0, 2, 2)), np.zeros((0, 2, 2, 2))),
@@ -716,6 +733,27 @@ def test_bad_input_raises_an_error_naming_the_argument(call, name):
 
 
 # --- regressions of defects this fuzz found ---------------------------------------------
+
+def test_network_numbers_of_any_real_type_are_read_as_floats():
+    """A Fraction or a Python int past 2**63 crashed np.isfinite in the network's checks
+    (a TypeError naming nothing), and `associate` handed a float16 or longdouble threshold
+    on to its "assignment" raw (overflow, or a cast error in scipy) (fuzz, 2026-11-26)."""
+    from fractions import Fraction
+
+    near = fo.Estimates([[0.0, 0.0]], [np.eye(2)])
+    far = fo.Estimates([[100.0, 0.0]], [np.eye(2)])
+    apart, together = [("a",), ("b",)], [("a", "b")]
+    for threshold, expected in ((np.float16(1.0), apart), (np.longdouble(1.0), apart),
+                                (Fraction(1), apart), (1, apart), (10**20, together)):
+        for method in ("nearest", "assignment"):
+            groups = fo.associate({"a": near, "b": far}, threshold, method)
+            assert sorted(g.sources for g in groups) == expected
+    node = fo.ProcessingNode(["a", "b"], threshold=10**20, growth=10**20,
+                             p_detect={"a": Fraction(1, 2), "b": np.float16(0.5)})
+    assert (node.threshold, node.chi, node.p_detect) == (1e20, 1e-20, {"a": 0.5, "b": 0.5})
+    assert fo.Estimates([[0.0]], [[[1.0]]], time=Fraction(1, 3)).time == 1 / 3
+    assert node.step({"a": near}, time=Fraction(1, 2)).time == 0.5
+
 
 def _ill_batch_4_3():
     """The (n, N) = (4, 3) "ill-conditioned" batch of 10^5 problems of issue 9, item 2."""

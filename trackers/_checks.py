@@ -13,8 +13,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from fusion_opt import FusionInputError, limits
+from fusion_opt import FusionInputError
 from fusion_opt import validation as _fo
+from fusion_opt.limits import fits  # noqa: F401 (the trackers call _checks.fits)
 
 
 def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.ndarray:
@@ -133,15 +134,6 @@ def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -
         f"{name}: step {steps + 1}'s estimate is not finite, or its covariance not positive "
         "definite, in float64 (a measurement far beyond the model's scale, or a model and "
         "prior at float64's limits); the filter's state is the one before this step")
-
-
-def fits(what: str, n_bytes: float) -> None:
-    """Refuses, before allocating, arrays of about n_bytes over fusion_opt.limits'
-    array_memory; ``what`` names the arguments that set their size."""
-    if n_bytes > limits.array_memory:
-        raise FusionInputError(
-            f"{what}: about {n_bytes / 2**30:.3g} GiB of arrays, over the limit of "
-            f"{limits.array_memory / 2**30:.3g} GiB (fusion_opt.limits.array_memory)")
 
 
 def generator(name: str, value) -> np.random.Generator:
