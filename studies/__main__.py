@@ -43,6 +43,8 @@ import importlib.util  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from fusion_opt import FusionInputError  # noqa: E402  (a study's own input, refused)
+
 from . import config as configs  # noqa: E402
 from . import meta, runner  # noqa: E402
 from .store import Store, StoreError, file_digests, verify_files  # noqa: E402
@@ -302,8 +304,9 @@ def main(argv=None) -> int:
     try:
         args.out = _out(args.out)
         (_run if args.command == "run" else _report)(args)
-    except (StoreError, configs.ConfigError, runner.RunError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)  # OSError: an --out that cannot be written
+    except (StoreError, configs.ConfigError, runner.RunError, OSError,
+            FusionInputError) as exc:  # OSError: an --out that cannot be written
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         print(f"interrupted{f': {exc}' if str(exc) else ''}", file=sys.stderr)

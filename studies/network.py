@@ -109,6 +109,12 @@ def _positive(where, x):
     return configs.number(where, x, above=0)
 
 
+def _scale(where, x):
+    """A length of the synthetic scene: its squares (covariances) stay far inside float64."""
+    return configs.number(where, x, low=1e-100, high=1e100, why="positions and their "
+                          "covariances (its square) must stay well inside float64's range")
+
+
 def _count(where, x):
     return configs.integer(where, x, low=1)
 
@@ -134,7 +140,7 @@ BENCHMARK = {
                              for i, v in enumerate(configs.items(w, x))],
     "p_detect": lambda w, x: [configs.probability(f"{w}[{i}]", v)
                               for i, v in enumerate(configs.items(w, x, length=2))],
-    "noise_sd": _positive, "spacing": _positive, "threshold": _positive,
+    "noise_sd": _scale, "spacing": _scale, "threshold": _positive,
     "growth": configs.growth, "warmup": _count, "steps": _count,
     "backend": lambda w, x: configs.choice(w, x, fo.BACKENDS),
     "criterion": lambda w, x: configs.choice(w, x, ("trace", "logdet")),

@@ -78,6 +78,11 @@ def test_cli_refuses_a_bad_field_by_name(tmp_path, capsys):
     (("figure", "nodes"), ["A", "Q"], r"figure.nodes\[1\] must be one of"),
     (("benchmark", "sources"), [1, 4], r"benchmark.sources\[0\] must be an integer >= 2"),
     (("benchmark", "methods"), ["naive"], r"benchmark.methods\[0\] must be one of"),
+    # past float64's range, or squared past it (fuzz of 2026-11-26: an OverflowError, an
+    # uncaught FusionInputError on infinite positions)
+    (("benchmark", "threshold"), 10**400, "benchmark.threshold must be a finite number > 0"),
+    (("benchmark", "noise_sd"), 1e300, "benchmark.noise_sd must be a finite number >= 1e-100"),
+    (("benchmark", "spacing"), 1e308, "benchmark.spacing must be a finite number >= 1e-100"),
     (("backend",), "closed-form", "backend 'closed-form' fuses two estimates only"),
     (("seed",), -1, "seed must be an integer >= 0"),
 ])
@@ -145,3 +150,20 @@ def test_benchmark_groups_are_the_targets():
     cell = network.time_node(bm, "mbci", 3, 10, np.random.default_rng(0))
     assert 9 <= cell["tracks_per_step"] <= 10  # one fused track per target, not per report
     assert 0 < cell["median_ms"] <= cell["p90_ms"]
+
+
+def test_an_input_the_library_refuses_is_one_line_not_a_traceback(tmp_path, capsys,
+                                                                   monkeypatch):
+    """A FusionInputError from a study's own computation (its configuration checked, but an
+    input the library refuses) ends the command with its message, exit status 2."""
+    def refused(*args, **kwargs):
+        raise fo.FusionInputError("means has a non-finite value inf at index (1, 0)")
+
+    monkeypatch.setattr(network, "benchmark", refused)
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(TINY)
+    assert main(["run", "network", "--config", str(cfg), "--out", str(tmp_path), "--quiet",
+                 "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().splitlines()[-1] == (
+        "error: means has a non-finite value inf at index (1, 0)") and "Traceback" not in err
