@@ -118,6 +118,10 @@ def test_report_of_one_stored_run_is_refused_not_given_zero_width_intervals(tiny
     assert "holds 1 finished run(s) and a 95% interval needs two or more runs" in err
 
 
+# Three and two whole runs of the study (7-9 and 5 s): with the slow tests, so that the
+# default run keeps within its budget (the interrupted pool runs of
+# test_studies_interrupt.py, resumed to the serial results, stay in it)
+@pytest.mark.slow
 def test_same_seed_same_table_whatever_the_executor(tiny, tmp_path):
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
     assert _run(tiny, tmp_path / "p", "--workers", "2") == serial
@@ -144,6 +148,7 @@ def test_a_pool_never_has_more_workers_than_runs_to_do(tiny, tmp_path, monkeypat
     assert started == [3]
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_identical_results(tiny, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     serial = _run(tiny, tmp_path / "s", "--workers", "1")
