@@ -16,13 +16,16 @@ from studies import runner, table1
 from studies.__main__ import GROUPS, STUDIES, main
 
 ROOT = Path(__file__).parents[1]
-# 40 steps, 5 particles and the exact "newton" backend: a run takes about 0.05 s.
+# 40 steps, 5 particles, the exact "newton" backend and no Clarabel check steps (its own tests
+# are in test_study_table1.py): a run takes about 0.05 s.
 TINY = """
 runs = 3
 backend = "newton"
 [scenario]
 n_steps = 40
 n_particles = 5
+[check]
+steps = 0
 """
 
 
