@@ -14,9 +14,9 @@ in process groups of their own (`_worker`), and are terminated without waiting f
 runs. Runs that have finished by then, and arrived, are stored before KeyboardInterrupt
 goes on to the caller.
 
-A local pool first has its workers compile the library's compiled kernels, a part each
-(`fusion_opt.core.compile_part`), which on a machine with a cold cache shortens the first
-runs by a third; past a second of it, the pool says once that the kernels are being
+A local pool first has its workers compile the library's compiled kernels, stage by stage,
+a part each (`fusion_opt.core.compile_part`, KERNEL_STAGES), which on a machine with a
+cold cache shortens the first runs by a third; past a second of it, the pool says once that the kernels are being
 compiled (`fusion_opt.linalg.NOTICE`; the workers themselves say nothing).
 """
 
