@@ -16,8 +16,9 @@ goes on to the caller.
 
 A local pool first has its workers compile the library's compiled kernels, stage by stage,
 a part each (`fusion_opt.core.compile_part`, KERNEL_STAGES), which on a machine with a
-cold cache shortens the first runs by a third; past a second of it, the pool says once that the kernels are being
-compiled (`fusion_opt.linalg.NOTICE`; the workers themselves say nothing).
+cold cache shortens the first runs by a third; past a second of it, the pool says once
+that the kernels are being compiled (`fusion_opt.linalg.NOTICE`; the workers themselves
+say nothing).
 """
 
 from __future__ import annotations
