@@ -359,7 +359,9 @@ def _correlation_factor(cross, covs, Dinv):
         raise FusionInputError(f"cross[{i}, {i}] differs from covs of node {i} by "
                                f"{diag[i]:.3g}")
     with np.errstate(over="ignore", invalid="ignore"):  # overflow: refused below
-        C = np.einsum("iab,ijbc,jdc->ijad", Dinv, cross, Dinv)
+        # by blocks D_i^-1 cross[i, j] D_j^-T, matrix products: a three-operand einsum
+        # summed over b and c at once, N^2 n^4 (22 s at N = 8, n = 128, against 0.07 s)
+        C = Dinv[:, None] @ cross @ np.swapaxes(Dinv, -1, -2)[None]
     C = 0.5 * (C + np.swapaxes(C.transpose(1, 0, 2, 3), -1, -2))
     C[np.arange(N), np.arange(N)] = np.eye(n)
     C = C.transpose(0, 2, 1, 3).reshape(N * n, N * n)
