@@ -25,6 +25,7 @@ log-log slope; measured once after the runs (scaling.json).
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -68,6 +69,7 @@ def _log10_range(where, x):
         raise configs.ConfigError(f"{where} must be [low, high] with low <= high, got {x!r}")
 
 
+SCALE_LOG10 = 100  # a static case's covariances stay within 10^-100..10^100
 STATIC = {  # field of [static] -> its check
     "n": lambda w, x: configs.integer(w, x, low=1),
     "N": lambda w, x: configs.integer(w, x, low=2),
@@ -101,6 +103,7 @@ def check(config: dict) -> None:
     static = configs.table(config["static"], "static", STATIC)
     backend = configs.choice("backend", config["backend"], fo.BACKENDS)
     _static_fits("static.n, static.N and static.draws", static, backend)
+    _static_scales("static", static)
     sweeps = config["sweeps"]
     if not isinstance(sweeps, dict) or "N" not in sweeps:
         raise configs.ConfigError("[sweeps] must be a table with a sweep over N (the figures "
@@ -150,6 +153,20 @@ def _static_fits(where: str, cfg: dict, backend: str) -> None:
     configs.fusion_fits(where, n, N, backend)
 
 
+def _static_scales(where: str, cfg: dict) -> None:
+    """Refuse a static case whose covariances could leave 10^-SCALE_LOG10..10^SCALE_LOG10:
+    eigenvalues 10^base_log10, grown by growth_true up to max_misses times (the case's
+    products and eigendecompositions, of their squares, stay finite there; growth_true =
+    1e308 or base_log10 = [-320, -310] ended runs in numpy's LinAlgError)."""
+    low, high = cfg["base_log10"]
+    top = high + cfg["max_misses"] * math.log10(cfg["growth_true"])
+    if low < -SCALE_LOG10 or top > SCALE_LOG10:
+        raise configs.ConfigError(
+            f"{where}: the covariances reach 10^{low:g} to 10^{top:.4g} (base_log10, grown "
+            f"by growth_true up to max_misses times), outside "
+            f"10^-{SCALE_LOG10}..10^{SCALE_LOG10}")
+
+
 def _dynamic_fits(where: str, dyn: dict, N: int, backend: str) -> None:
     """Refuse a dynamic case of N nodes beyond fusion_opt.limits: the cross-covariances
     kept per step after burn-in (N, N, 4, 4), twice, and the scans (about 50 words per
@@ -176,6 +193,7 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)
         _static_fits(f"{where}[{i}] = {v}", static | fixed | {field: v}, backend)
+        _static_scales(f"{where}[{i}] = {v}", static | fixed | {field: v})
     return [(static | fixed | {field: v})["N"] for v in values]
 
 

@@ -73,6 +73,13 @@ CASES = [  # (study, TOML file, what the one line must say)
     # [static] has no field growth: its growth fields are named instead
     ("nnode", "[static]\nchi_inv = 1.5\n", "(chi_inv is now growth_assumed or growth_true"),
     ("nnode", "[static]\nrho = nan\n", "static.rho must be a finite number >= 0 and <= 1"),
+    # covariances past float64's range ended runs in numpy's LinAlgError (fuzz, 2026-11-26)
+    ("nnode", "[static]\ngrowth_true = 1e308\n", "static: the covariances reach 10^-0.5 to "
+     "10^6160 (base_log10, grown by growth_true up to max_misses times), outside"),
+    ("nnode", "[static]\nbase_log10 = [-320.0, -310.0]\n", "static: the covariances reach "
+     "10^-320"),
+    ("nnode", "[sweeps]\nN = [2]\ngrowth_true = [1.5, 1e10]\n", "sweeps.growth_true[1] = "
+     "10000000000.0: the covariances reach"),
     ("nnode", "runs = -1\n", f"{RUNS} -1"),
     ("nnode", 'backend = "gurobi"\n', "backend must be one of ['newton'"),
     ("nnode", "[dynamic]\nburn_in = 500\n", "dynamic.burn_in must be below dynamic.steps"),
