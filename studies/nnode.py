@@ -386,8 +386,17 @@ def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
                               wall[name] / steps) for name, est in fused.items()}
     cross = np.array(cross)
     t0 = time.perf_counter()
-    known = fo.fuse_batch(np.array(means), np.diagonal(cross, axis1=1, axis2=2).transpose(
-        0, 3, 1, 2), method="known-cross", cross=cross)
+    try:
+        known = fo.fuse_batch(np.array(means), np.diagonal(cross, axis1=1, axis2=2).transpose(
+            0, 3, 1, 2), method="known-cross", cross=cross)
+    except fo.FusionInputError as exc:
+        # the errors share the prior and the process noise; each detection adds a node's
+        # own 2-D noise to its 4-D error: until every node has about two, the joint is
+        # singular (8 nodes, quick settings: for the first 3 to 5 or more steps of a run)
+        raise fo.FusionInputError(
+            f"{exc} after dynamic.burn_in = {dcfg['burn_in']} steps: until every node has "
+            "made about two detections of its own, the nodes' errors are linearly "
+            "dependent; a longer burn-in avoids it") from None
     out["known cross"] = _dynamic_row(known.mean, known.cov, truth,
                                       (time.perf_counter() - t0) / steps)
     return out

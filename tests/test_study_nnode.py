@@ -168,3 +168,13 @@ def test_static_errors_have_the_joint_covariance(rho):
     S = np.concatenate(np.concatenate(case["cross"], axis=1), axis=1)
     assert np.linalg.eigvalsh(S).min() >= -1e-12 * np.linalg.norm(S, 2)  # a valid joint
     np.testing.assert_allclose(np.cov(e.T), S, atol=0.05 * np.abs(S).max())
+
+
+def test_a_burn_in_too_short_for_known_cross_says_so():
+    """Early in a run the nodes' errors are linearly dependent (a shared prior, position-only
+    detections), and known-cross refuses the singular joint: the run's error says why and
+    which field to change (fuzz of 2026-11-26: it named only `cross`)."""
+    dcfg = configs.load("nnode", quick=True)["dynamic"] | {"steps": 5, "burn_in": 1}
+    with pytest.raises(fo.FusionInputError, match=r"not positive definite after "
+                       r"dynamic.burn_in = 1 steps: until every node has made about two"):
+        nnode.dynamic_scores(dcfg, 8, np.random.default_rng(0), "newton")
