@@ -155,9 +155,10 @@ def test_after_the_parts_compiled_by_other_processes_a_user_compiles_nothing(tmp
     load every kernel from the cache: numba compiles nothing."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
     part = "from fusion_opt import core; core.compile_part({!r})"
-    for stage in core.KERNEL_STAGES:
-        for name in stage:
-            subprocess.run([sys.executable, "-c", part.format(name)], env=env, check=True)
+    for stage in core.KERNEL_STAGES:  # a stage's parts at once, as the runner does
+        procs = [subprocess.Popen([sys.executable, "-c", part.format(name)], env=env)
+                 for name in stage]
+        assert [p.wait() for p in procs] == [0] * len(stage)
     calls = textwrap.dedent("""
         import numpy as np
         from numba.core import event
