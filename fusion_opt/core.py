@@ -299,8 +299,9 @@ def compile_part(part: str) -> float:
     kernels; "fuse": `fuse_exact`, the whole exact path, from the kernels of "solve" and
     "assemble"; "network": the checks of an Estimates, MBCI's detection scales and the
     association of estimates. On a cold cache, processes compiling a stage's parts at once
-    (KERNEL_STAGES) shorten the first fusion: 60-66 s in one process, about 30 s + 7 s on
-    2 cores (`studies/runner.py` has its workers do it, as tests/conftest.py does)."""
+    (KERNEL_STAGES) shorten the first fusion: about 70 s in one process, 33 s + 6 s on 2
+    cores (at f915525; `studies/runner.py` has its workers do it, as tests/conftest.py
+    does)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()

@@ -175,8 +175,8 @@ class _Pool:
     def _compile_kernels(self) -> None:
         """The workers compile the library's kernels before the runs, stage by stage, the
         parts of a stage at once (`fusion_opt.core.KERNEL_STAGES`): on a cold cache and 2
-        cores, about 30 s and then 7 s, instead of each worker compiling all of it on its
-        first runs (60-66 s). On a warm cache, a load of 0.1 s. Past a second of it, the
+        cores, 33 s and then 6 s, instead of each worker compiling all of it on its first
+        runs (about 70 s). On a warm cache, a load of 0.1 s. Past a second of it, the
         kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
         from fusion_opt.core import KERNEL_STAGES, compile_part
 
