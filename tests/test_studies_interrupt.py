@@ -80,6 +80,20 @@ def _start_and_signal(config, out, workers, sig) -> tuple[subprocess.Popen, str,
     return proc, err, time.monotonic() - t0
 
 
+def _part_way(config, tmp_path, workers, sig, tries=3):
+    """`_start_and_signal` into a fresh folder until the signal lands part-way (fewer than
+    RUNS runs stored); returns that folder, the process, its stderr and its stop time. On
+    2 loaded cores the poll that sees 2 runs stored can be held off until the study has
+    stored them all (once in a full run, 2026-11-26): such an attempt shows nothing of an
+    interruption and is made again; a study that ignored the signal fails every try."""
+    for k in range(tries):
+        out = tmp_path / f"try{k}"
+        proc, err, stop = _start_and_signal(config, out, workers, sig)
+        if _stored(out / "table1" / "runs.sqlite") < RUNS:
+            break
+    return out, proc, err, stop
+
+
 def _resumes(config, out, uninterrupted) -> None:
     assert _resume(config, out) == uninterrupted
     info = json.loads((out / "table1" / "meta.json").read_text())
@@ -89,9 +103,9 @@ def _resumes(config, out, uninterrupted) -> None:
 
 
 def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, tmp_path):
-    _start_and_signal(config, tmp_path, "1", signal.SIGKILL)
-    assert 2 <= _stored(tmp_path / "table1" / "runs.sqlite") < RUNS, "must land part-way"
-    assert _resume(config, tmp_path) == uninterrupted
+    out = _part_way(config, tmp_path, "1", signal.SIGKILL)[0]
+    assert 2 <= _stored(out / "table1" / "runs.sqlite") < RUNS, "must land part-way"
+    assert _resume(config, out) == uninterrupted
 
 
 # SIGTERM follows SIGINT's path once the handler is set: its cases (9 s) run with the
@@ -102,15 +116,15 @@ def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, 
 def test_ctrl_c_or_sigterm_stops_within_2_s_and_the_study_resumes(config, uninterrupted,
                                                                   tmp_path, workers, sig):
     """SIGTERM as Ctrl-C: the stored runs are said, and the invocation is counted."""
-    proc, err, stop = _start_and_signal(config, tmp_path, workers, sig)
+    out, proc, err, stop = _part_way(config, tmp_path, workers, sig)
     assert proc.returncode == 130, err
     assert stop < 2.0, f"stopped after {stop:.2f} s"
-    stored = _stored(tmp_path / "table1" / "runs.sqlite")
+    stored = _stored(out / "table1" / "runs.sqlite")
     assert 2 <= stored < RUNS, "Ctrl-C must land part-way"
     assert err.strip().splitlines()[-1].startswith(
         f"interrupted: {stored} of {RUNS} runs of table1 are stored")
     assert "Traceback" not in err
-    _resumes(config, tmp_path, uninterrupted)
+    _resumes(config, out, uninterrupted)
 
 
 def test_a_signal_to_the_group_of_a_study_with_idle_workers_does_not_hang_its_pool():
