@@ -31,7 +31,7 @@ def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
 def finite_real(x) -> float | None:
     """x as a float when it is a real number (not a bool) whose float is finite, else None:
     a numpy scalar, a Fraction or a Python int of any size is a real number, and one whose
-    float overflows (10**400, or 10**20 ** 20) is refused, not crashed on."""
+    float overflows (10**400) is refused, not crashed on."""
     if isinstance(x, bool) or not isinstance(x, numbers.Real):
         return None
     try:

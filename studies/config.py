@@ -20,13 +20,13 @@ import dataclasses
 import hashlib
 import importlib
 import json
-import math
 import tomllib
 from collections.abc import Collection, Mapping
 from importlib import resources
 from pathlib import Path
 
 import fusion_opt as fo
+from fusion_opt.validation import finite_real
 
 
 class ConfigError(ValueError):
@@ -125,14 +125,6 @@ def _is_number(value) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _float(value) -> float:
-    """float(value), inf for an integer past float64's range (TOML allows any size)."""
-    try:
-        return float(value)
-    except OverflowError:
-        return math.inf
-
-
 def _refuse(where: str, kind: str, value, why: str = "", **bounds) -> None:
     """ConfigError: where must be a <kind> <bounds> (why), got value."""
     ops = {"low": ">=", "high": "<=", "above": ">"}
@@ -144,7 +136,7 @@ def _refuse(where: str, kind: str, value, why: str = "", **bounds) -> None:
 def number(where: str, value, low: float | None = None, high: float | None = None, *,
            above: float | None = None, why: str = "") -> float:
     """A finite number in [low, high] and > above (each bound optional)."""
-    ok = _is_number(value) and math.isfinite(_float(value))
+    ok = _is_number(value) and finite_real(value) is not None  # TOML ints of any size
     if not (ok and (low is None or value >= low) and (high is None or value <= high)
             and (above is None or value > above)):
         _refuse(where, "a finite number", value, why, low=low, high=high, above=above)
