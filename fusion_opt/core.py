@@ -40,7 +40,7 @@ import numpy as np
 
 from . import rules
 from .assemble import assemble
-from .backends import BACKENDS, EXACT, REGISTRY, newton
+from .backends import BACKENDS, EXACT, REGISTRY, newton, slsqp
 from .detection import detection_split
 from .exact import fuse_exact
 from .limits import batch_bytes, conic_bytes, limits, working_bytes
@@ -441,7 +441,10 @@ def _ci_output(a, solve_time, polish_iters):
 
 def check_memory(req, n, N, B=1):
     """Refuses (FusionSolverError) B problems whose arrays, weight solver's work arrays or
-    conic solve would exceed fusion_opt.limits."""
+    conic solve would exceed fusion_opt.limits, or whose N is past what "slsqp" can fuse
+    in reasonable time (`slsqp.MAX_NODES`)."""
+    if req.backend == "slsqp" and N > slsqp.MAX_NODES:
+        raise FusionSolverError("slsqp", "node_limit", slsqp.node_limit(N))
     over = over_memory(req, n, N, B)
     if over is not None:
         raise FusionSolverError(req.backend or req.method, "memory_limit",

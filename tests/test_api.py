@@ -242,12 +242,21 @@ def test_warmup_checks_the_memory_limit_before_allocating():
             fo.warmup(n, N)
 
 
-def test_slsqp_and_clarabel_beyond_memory_are_refused_before_solving():
-    """Regression: SLSQP at N = 20000 raised scipy's MemoryError for 31 GiB; Clarabel's
-    estimate, half the measured peak, let n = 90 (about 8.5 GB) pass the 4 GiB limit."""
-    covs = np.broadcast_to(np.eye(2), (20000, 2, 2))
-    with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*N = 20000"):
-        fo.bci(np.zeros((20000, 2)), covs, backend="slsqp")
+def test_slsqp_beyond_its_nodes_and_clarabel_beyond_memory_are_refused_before_solving():
+    """Regressions: SLSQP at N = 3000 ran past 10 minutes (its steps cost O(N^3)) and at
+    N = 20000 raised scipy's MemoryError for 31 GiB; Clarabel's estimate, half the measured
+    peak, let n = 90 (about 8.5 GB) pass the 4 GiB limit."""
+    from fusion_opt.backends.slsqp import MAX_NODES
+
+    for N in (MAX_NODES + 1, 3000, 20000):
+        covs = np.broadcast_to(np.eye(2), (N, 2, 2))
+        for call in (lambda: fo.bci(np.zeros((N, 2)), covs, backend="slsqp"),
+                     lambda: fo.fuse_batch(np.zeros((1, N, 2)), covs[None], backend="slsqp"),
+                     lambda: fo.warmup(2, N, backend="slsqp")):
+            with pytest.raises(fo.FusionSolverError, match=rf"'node_limit': N = {N} nodes"):
+                call()
+    covs = np.broadcast_to(np.eye(2), (MAX_NODES, 2, 2))
+    assert fo.bci(np.zeros((MAX_NODES, 2)), covs, backend="slsqp").status == fo.Status.OPTIMAL
     with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*n = 90.*conic_memory"):
         fo.bci(np.zeros((2, 90)), np.stack([np.eye(90)] * 2), backend="clarabel")
 
