@@ -249,12 +249,13 @@ def test_slsqp_beyond_its_nodes_and_clarabel_beyond_memory_are_refused_before_so
     from fusion_opt.backends.slsqp import MAX_NODES
 
     for N in (MAX_NODES + 1, 3000, 20000):
-        covs = np.broadcast_to(np.eye(2), (N, 2, 2))
-        for call in (lambda: fo.bci(np.zeros((N, 2)), covs, backend="slsqp"),
-                     lambda: fo.fuse_batch(np.zeros((1, N, 2)), covs[None], backend="slsqp"),
-                     lambda: fo.warmup(2, N, backend="slsqp")):
-            with pytest.raises(fo.FusionSolverError, match=rf"'node_limit': N = {N} nodes"):
-                call()
+        means, covs = np.zeros((N, 2)), np.broadcast_to(np.eye(2), (N, 2, 2))
+        with pytest.raises(fo.FusionSolverError, match=rf"'node_limit': N = {N} nodes"):
+            fo.bci(means, covs, backend="slsqp")
+        with pytest.raises(fo.FusionSolverError, match=rf"'node_limit': N = {N} nodes"):
+            fo.fuse_batch(means[None], covs[None], backend="slsqp")
+        with pytest.raises(fo.FusionSolverError, match=rf"'node_limit': N = {N} nodes"):
+            fo.warmup(2, N, backend="slsqp")
     covs = np.broadcast_to(np.eye(2), (MAX_NODES, 2, 2))
     assert fo.bci(np.zeros((MAX_NODES, 2)), covs, backend="slsqp").status == fo.Status.OPTIMAL
     with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*n = 90.*conic_memory"):

@@ -238,7 +238,13 @@ def test_crossing_config_refuses_bad_fields_by_name(field, value, match):
     (lambda: scenarios.Table2Config(targets=[scenarios.TargetSpec((0, 0, 1, 0), -1e300, 1)]),
      "targets and clutter_rate: about"),
     (lambda: scenarios.Table1Config(n_steps=5, dt=1e300), "too long a step"),
-    (lambda: scenarios.Table1Config(region=((-1.7e308, 1.7e308), (0, 1))), "width overflows")])
+    (lambda: scenarios.Table1Config(region=((-1.7e308, 1.7e308), (0, 1))), "width overflows"),
+    # fuzz E2 (an OverflowError from meas_sd**2) and E8 (refused when simulated, naming dt)
+    (lambda: scenarios.Table2Config(meas_sd=1e200), r"meas_sd = 1e\+200: its square"),
+    (lambda: scenarios.Table2Config(meas_sd=1e-200), r"meas_sd = 1e-200: its square"),
+    (lambda: scenarios.CrossingConfig(meas_sd=1e200), r"meas_sd = 1e\+200: its square"),
+    (lambda: scenarios.Table1Config(turn_noise_sd=1e300), r"turn_noise_sd = 1e\+300: the drawn"),
+    (lambda: scenarios.Table2Config(turn_noise_sd=1e150), r"turn_noise_sd = 1e\+150: the drawn")])
 def test_configs_whose_runs_float64_or_memory_cannot_hold_are_refused(make, match):
     """Regression: each asked for terabytes (or was OOM-killed: a target born at -1e3 s is
     propagated from there at dt = 1e-6), returned NaN truth, or raised OverflowError when

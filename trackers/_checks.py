@@ -81,6 +81,17 @@ def positive(name: str, value) -> float:
     return x
 
 
+def variance(name: str, sd) -> float:
+    """sd^2 of a finite positive standard deviation sd, refused by name when the square
+    leaves float64's normal range (1e200 squared overflows; 1e-200 squared is 0)."""
+    s = positive(name, sd)
+    v = s * s
+    if not np.finfo(float).tiny <= v < np.inf:
+        raise FusionInputError(f"{name} = {sd!r}: its square, the variance, is outside "
+                               "float64's range")
+    return v
+
+
 def probability(name: str, value) -> float:
     p = real(name, value)
     if not 0.0 <= p <= 1.0:  # False for NaN

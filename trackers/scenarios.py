@@ -106,13 +106,24 @@ def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
                                ) from None
 
 
-def _check_rates(name: str, rates, q: float, dt: float) -> None:
-    """Each turn rate (rad/s) gives a coordinated-turn step of dt that float64 holds."""
+def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -> None:
+    """Each turn rate (rad/s) gives a coordinated-turn step of dt that float64 holds, and
+    so do the rates drawn around them, rate + noise_sd N(0, 1): checked at the largest
+    |rate| + 40 noise_sd (a standard normal beyond 40 has probability below 1e-340), as
+    |F|_1 and the step's size grow with |rate|."""
     for i, a in enumerate(rates):
         try:
             discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
         except FusionInputError as exc:
             raise FusionInputError(f"{name}: turn rate {i} = {a!r}: {exc}") from None
+    if noise_sd == 0.0:
+        return
+    worst = max(abs(a) for a in rates) + 40.0 * noise_sd
+    try:
+        discretize(turn_F(worst), turn_L(), q * np.eye(2), dt)
+    except FusionInputError as exc:
+        raise FusionInputError(f"turn_noise_sd = {noise_sd!r}: the drawn turn rates reach "
+                               f"about {worst:.3g} rad/s: {exc}") from None
 
 
 def _check_shared(cfg) -> None:
@@ -203,7 +214,8 @@ class Table1Config:
         _check_windows("turn_windows", self.turn_windows)
         _checks.probability("clutter_fraction", self.clutter_fraction)
         self.filter_model()  # dt, q and r give a model float64 holds
-        _check_rates("turn_windows", [w[2] for w in self.turn_windows], self.q, self.dt)
+        _check_rates("turn_windows", [w[2] for w in self.turn_windows], self.q, self.dt,
+                     self.turn_noise_sd)
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
@@ -352,7 +364,7 @@ class Table2Config:
         self.filter_model()  # dt, q and meas_sd give a model float64 holds
         for i, tg in enumerate(self.targets):
             _check_rates(f"targets[{i}]", [tg.turn_rate, *(w[2] for w in tg.turn_windows)],
-                         self.q, self.dt)
+                         self.q, self.dt, self.turn_noise_sd)
         _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
 
     def _run_bytes(self) -> float:
@@ -366,7 +378,7 @@ class Table2Config:
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
-        return turn_model(0.0, self.q, self.meas_sd**2, self.dt)
+        return turn_model(0.0, self.q, _checks.variance("meas_sd", self.meas_sd), self.dt)
 
     def prior(self) -> tuple[np.ndarray, np.ndarray]:
         """New-target prior (m0, P0): zero mean, prior_cov I4."""
@@ -515,10 +527,11 @@ class CrossingConfig:
         points = self.n_steps * (len(self.p_detect) * self.n_targets + sum(self.clutter_rate))
         _checks.fits("n_steps, n_targets and clutter_rate",
                      48.0 * self.n_targets * self.n_steps + 300.0 * points)
+        self.filter_model()  # dt, q and meas_sd give a model float64 holds
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = meas_sd^2 I2."""
-        return turn_model(0.0, self.q, self.meas_sd**2, self.dt)
+        return turn_model(0.0, self.q, _checks.variance("meas_sd", self.meas_sd), self.dt)
 
     def times(self) -> np.ndarray:
         return self.dt * np.arange(1, self.n_steps + 1)
