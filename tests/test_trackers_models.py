@@ -70,12 +70,26 @@ def test_linear_gaussian_is_frozen_and_read_only():
         ({"H": [[True, False, False, False], [False, True, False, False]]}, "H must be"),
         ({"Q": "eye"}, "Q must be an array of real numbers"),
         ({"R": None}, "R must be an array of real numbers"),
+        # fuzz E5: below scale 1 the tolerances were absolute (1e-12, 1e-10) and let these
+        # pass: an R whose symmetric part is indefinite, a negative definite Q
+        ({"R": np.array([[1e-20, 1e-14], [0.0, 1e-20]])}, "R must be symmetric"),
+        ({"Q": -5e-11 * np.eye(4)}, "Q must be positive semidefinite"),
     ],
 )
 def test_linear_gaussian_rejects_bad_input(kwargs, match):
     args = {"A": np.eye(4), "Q": np.eye(4), "H": np.eye(2, 4), "R": np.eye(2)} | kwargs
     with pytest.raises(ValueError, match=match):
         models.LinearGaussian(**args)
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-20, 1.0, 1e20, 1e300])
+def test_a_valid_model_at_any_scale_is_accepted(scale):
+    """The checks are relative to each matrix's own scale: a model scaled as a whole is as
+    valid at 1e-300 as at 1 (a singular PSD Q included)."""
+    Q = scale * np.diag([1.0, 1.0, 0.0, 0.0])
+    R = scale * np.array([[2.0, 0.5], [0.5, 1.0]])
+    model = models.LinearGaussian(np.eye(4), Q, np.eye(2, 4), R)
+    np.testing.assert_array_equal(model.R, R)
 
 
 def test_discretize_rejects_bad_input():

@@ -155,9 +155,10 @@ def generator(name: str, value) -> np.random.Generator:
 
 
 def _symmetric(name: str, value, n: int) -> tuple[np.ndarray, float]:
-    """A finite symmetric (n, n) matrix and its scale max(1, max |P|)."""
+    """A finite symmetric (n, n) matrix and its scale max |P|: the tolerances are relative
+    to it, so that a covariance of 1e-20 is held to the standard of one of 1."""
     P = finite_array(name, value, shape=(n, n))
-    scale = max(1.0, float(np.max(np.abs(P))))
+    scale = float(np.max(np.abs(P)))
     if not np.allclose(P, P.T, rtol=1e-9, atol=1e-12 * scale):
         raise FusionInputError(f"{name} must be symmetric")
     return P, scale
