@@ -251,6 +251,16 @@ def test_impossible_measurement_raises_and_leaves_the_filter_unchanged():
         np.testing.assert_array_equal(a, b)
 
 
+def test_an_impossible_measurement_says_which_setting_rules_out_clutter():
+    """Fuzz E11: with birth_prob = 1 the refusal blamed clutter_prior = 0, which the caller
+    had left at its default."""
+    cfg, model, m0, P0 = model_and_prior()
+    with pytest.raises(FusionInputError, match=r"clutter has prior 0 \(clutter_prior = 0, or "
+                                               r"birth_prob = 1\)"):
+        rbmcda.run([[[1e160, 1e160]]], model, m0, P0, rng=np.random.default_rng(0),
+                   dt=cfg.dt, birth_prob=1.0)
+
+
 @pytest.mark.parametrize("name", ["dt", "clutter_prior", "birth_prob", "lifetime_scale"])
 @pytest.mark.parametrize("bad", [None, "0.01", 0.01 + 0j, True])
 def test_rbmcda_refuses_non_numbers(name, bad):

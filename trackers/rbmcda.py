@@ -258,8 +258,8 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
     if log_pred.max() == -np.inf:
         raise FusionInputError(
             f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
-            "and the birth prior, and clutter_prior = 0 rules out clutter: no hypothesis "
-            "explains it")
+            "and the birth prior, and clutter has prior 0 (clutter_prior = 0, or "
+            "birth_prob = 1): no hypothesis explains it")
     if (s.logw + log_pred).max() == -np.inf:
         raise FusionInputError(
             f"measurement y = {y.tolist()} leaves every particle with weight 0: no particle "
