@@ -116,6 +116,9 @@ def test_nees_and_bounds():
         metrics.anees_bounds(4, 0)
     with pytest.raises(ValueError, match="level must be a probability"):
         metrics.anees_bounds(4, 2, level=1.5)
+    for level in (0.0, 1.0):  # fuzz E6: (0, inf) at 1, an interval of width 0 at 0
+        with pytest.raises(ValueError, match="level must lie strictly between 0 and 1"):
+            metrics.nees_bounds(2, level)
 
 
 def test_cardinality_error():

@@ -1,5 +1,7 @@
 """Systematic resampling and the effective sample size."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,17 @@ def test_zero_weights_never_chosen_and_ess():
     assert resampling.effective_sample_size(np.zeros(7)) == pytest.approx(7.0)
     np.testing.assert_allclose(np.exp(resampling.normalize_log_weights(np.log([1.0, 3.0]))),
                                [0.25, 0.75])
+
+
+def test_log_weights_across_the_float_range_raise_no_warning():
+    """Fuzz E13: -1e308 - 1e308 overflowed with a RuntimeWarning (an error under -W error);
+    that weight is 0 beside the other, exactly as exp gives it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        logw = np.array([1e308, -1e308])
+        assert resampling.effective_sample_size(logw) == 1.0
+        np.testing.assert_array_equal(resampling.normalize_log_weights(logw), [0.0, -np.inf])
+        assert resampling.logsumexp(logw) == 1e308
 
 
 def test_logsumexp_matches_scipy():

@@ -169,6 +169,8 @@ def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, floa
     dim = _checks.positive_int("dim", dim)
     count = _checks.positive_int("count", count)
     level = _checks.probability("level", level)
+    if not 0.0 < level < 1.0:  # 1 gives (0, inf), 0 an interval of width 0
+        raise FusionInputError(f"level must lie strictly between 0 and 1, got {level!r}")
     if count * dim >= 10**300:
         raise FusionInputError("count x dim must be below 1e300")
     df = float(count * dim)  # a Python int above 2^63 would reach scipy as an object

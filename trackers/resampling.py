@@ -30,7 +30,7 @@ def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     peak = a.max(axis=axis, keepdims=True)
     peak[~np.isfinite(peak)] = 0.0  # all -inf: the result is -inf
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):  # a - peak = -inf: a term of 0
         out = np.log(np.exp(a - peak).sum(axis=axis, keepdims=True)) + peak
     return out.reshape(()) if axis is None else out.squeeze(axis=axis)
 
@@ -49,7 +49,8 @@ def normalize_log_weights(logw: np.ndarray) -> np.ndarray:
     if not np.isfinite(peak):
         raise FusionInputError(f"logw must be finite or -inf with at least one finite "
                                f"(no NaN, no +inf, not all weights 0), got max {peak}")
-    shifted = logw - peak
+    with np.errstate(over="ignore"):  # -1e308 - 1e308 = -inf: a weight that is 0 next to
+        shifted = logw - peak        # the peak's, as exp gives it
     return shifted - np.log(np.exp(shifted).sum())
 
 
