@@ -94,6 +94,8 @@ def real_array(x, name: str) -> np.ndarray:
     if isinstance(x, str | bytes) or isinstance(x, Mapping):
         raise FusionInputError(f"{name} must be an array of real numbers, got "
                                f"{type(x).__name__}")
+    if isinstance(x, list | tuple) and _contains_bool(x):  # numpy would read True as 1.0
+        raise FusionInputError(f"{name} must be an array of real numbers, got a boolean in it")
     if isinstance(x, np.ma.MaskedArray):  # asarray would drop the mask, using hidden values
         raise FusionInputError(f"{name} is a masked array: fill or drop its masked values "
                                "first (np.ma.filled, or select the rows to keep)")
@@ -114,6 +116,16 @@ def real_array(x, name: str) -> np.ndarray:
             raise FusionInputError(f"{name} has a value beyond float64's range, {a[idx]!s} "
                                    f"at index {idx}")
     return out
+
+
+def _contains_bool(value) -> bool:
+    """Whether a (nested) list or tuple holds a boolean, which numpy would turn into 0 or 1
+    beside numbers."""
+    if isinstance(value, bool | np.bool_):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype == bool
+    return isinstance(value, list | tuple) and any(_contains_bool(v) for v in value)
 
 
 def finite_array(x, name: str) -> np.ndarray:

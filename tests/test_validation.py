@@ -100,3 +100,24 @@ def test_solver_error_survives_pickling():
     err = pickle.loads(pickle.dumps(fo.FusionSolverError("ei", "numerical_error", role="method")))
     assert (err.backend, err.role, str(err)) == (
         "ei", "method", "method 'ei' failed with status 'numerical_error'")
+
+
+_I = np.eye(2)
+
+
+@pytest.mark.parametrize("name, call", [
+    ("p_detect", lambda: fo.fuse(np.zeros((2, 2)), [_I, 2 * _I], "mbci", p_detect=[True, 0.5],
+                                 chi=0.5)),
+    ("means", lambda: fo.fuse([[True, 0.0], [0.0, 0.0]], [_I, _I])),
+    ("covs", lambda: fo.fuse(np.zeros((2, 2)), [[[True, 0.0], [0.0, 1.0]], _I])),
+    ("means", lambda: fo.Estimates([[True, 0.0]], [_I])),
+    ("m_a", lambda: fo.ci([True, 0.0], _I, [0.0, 0.0], _I)),
+    ("p_detect", lambda: fo.detection_scales([True, 0.5], 0.5)),
+    ("weights", lambda: fo.optimality_gap(np.stack([_I, _I]), [np.True_, 0.0])),
+])
+def test_a_boolean_inside_a_list_is_refused_not_read_as_a_number(name, call):
+    """Fuzz E7: numpy reads [True, 0.5] as [1.0, 0.5]; a boolean scalar or array was refused
+    already, a boolean among numbers was used as 1 or 0."""
+    with pytest.raises(fo.FusionInputError,
+                       match=rf"^{name} must be an array of real numbers, got a boolean in it"):
+        call()

@@ -23,8 +23,6 @@ def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.nd
 
     ``shape`` may contain ``None`` for a free axis.
     """
-    if not isinstance(value, np.ndarray) and _contains_bool(value):
-        raise FusionInputError(f"{name} must be an array of real numbers, got a boolean in it")
     arr = _fo.real_array(value, name)
     if ndim is not None and arr.ndim != ndim:
         raise FusionInputError(f"{name} must have {ndim} dimension(s), got shape {arr.shape}")
@@ -37,16 +35,6 @@ def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.nd
     if not np.all(np.isfinite(arr)):
         raise FusionInputError(f"{name} contains non-finite values")
     return arr
-
-
-def _contains_bool(value) -> bool:
-    """Whether a (nested) list or tuple holds a boolean, which numpy would turn into 0 or 1
-    beside numbers."""
-    if isinstance(value, bool | np.bool_):
-        return True
-    if isinstance(value, np.ndarray):
-        return value.dtype == bool
-    return isinstance(value, list | tuple) and any(_contains_bool(v) for v in value)
 
 
 def real(name: str, value) -> float:
