@@ -231,6 +231,8 @@ def to_tracks(estimates: Estimates, *, epoch: datetime = EPOCH,
               track_ids: TrackIds | None = None) -> list[Track]:
     """One single-state Track per estimate, with Stone Soup id `track_ids.track_id(id)`
     (str(id) if track_ids is None)."""
+    if track_ids is not None and not isinstance(track_ids, TrackIds):
+        raise FusionInputError(f"track_ids must be a TrackIds, got {type(track_ids).__name__}")
     ids = track_ids if track_ids is not None else TrackIds()
     return [Track([s], id=ids.track_id(i))
             for s, i in zip(to_states(estimates, epoch=epoch), estimates.ids, strict=True)]
@@ -308,9 +310,9 @@ class OptimalChernoffUpdater(Updater):
         """ChernoffUpdater's measurement prediction (the predicted state, cross covariance B)
         with the innovation covariance at the optimal omega of (noise_covar, B)."""
         measurement_model = self._check_measurement_model(measurement_model)
-        B = np.asarray(predicted_state.covar, dtype=float)
+        B = real_array(predicted_state.covar, "predicted_state.covar")  # complex: refused
         if measurement_noise:
-            A = np.asarray(measurement_model.noise_covar, dtype=float)
+            A = real_array(measurement_model.noise_covar, "measurement_model.noise_covar")
             if A.shape != B.shape:
                 raise FusionInputError(
                     f"measurement_model.noise_covar {A.shape} must match the predicted covar "
@@ -424,8 +426,9 @@ class StoneSoupTracker:
             raise FusionInputError("the tracker's tracks must be Stone Soup Tracks, got "
                                    f"{sorted({type(t).__name__ for t in tracks})}")
         states = {t: s for t in tracks if (s := _state_at(t, time)) is not None}
-        new = [t for t in states if t.id not in self.track_ids]
-        for t in sorted(new, key=lambda t: tuple(np.asarray(states[t].mean, float).ravel())):
+        new = {t: real_array(getattr(states[t], "mean", None), f"the mean of track {t.id!r}")
+               for t in states if t.id not in self.track_ids}  # numbered in their order
+        for t in sorted(new, key=lambda t: tuple(new[t].ravel())):
             self.track_ids.int_id(t.id)
         alive = sorted(states, key=lambda t: self.track_ids.int_id(t.id))
         if not alive:
@@ -446,6 +449,11 @@ def _state_at(track: Track, time):
     for state in reversed(track.states):
         if state.timestamp == time:
             return state
-        if time is None or state.timestamp is None or state.timestamp < time:
-            return None
+        try:
+            if time is None or state.timestamp is None or state.timestamp < time:
+                return None
+        except TypeError:  # a timezone-aware datetime and a naive one do not compare
+            raise FusionInputError(f"track {track.id!r} has a state at {state.timestamp!r}, "
+                                   f"which does not compare with the step's time {time!r} "
+                                   "(one timezone-aware, the other naive?)") from None
     return None

@@ -167,6 +167,42 @@ def test_conversion_refusals_name_the_argument():
     ids.int_id("5")
     with pytest.raises(fo.FusionInputError, match="already bound"):
         ids.track_id(5)
+    # fuzz E4: an AttributeError from a dict given as track_ids
+    with pytest.raises(fo.FusionInputError, match="track_ids must be a TrackIds, got dict"):
+        fs.to_tracks(fs.to_estimates(states), track_ids={})
+
+
+def test_the_tracker_wrapper_refuses_odd_tracks_by_name():
+    """Fuzz E4: a TypeError from comparing an aware state time with a naive step time, and a
+    ValueError from ordering new tracks by a mean that holds a string."""
+    eye = np.eye(2)
+    aware = T0.replace(tzinfo=UTC)
+    track = Track([GaussianState([1.0, 2.0], eye, timestamp=aware - timedelta(seconds=1)),
+                   GaussianState([1.0, 2.0], eye, timestamp=aware)])
+    with pytest.raises(fo.FusionInputError, match="does not compare with the step's time"):
+        fs.StoneSoupTracker([(T0, [track])], 2).step()
+    tracks = [Track([GaussianState(np.array([["a"], ["2"]], dtype=object), eye, timestamp=T0)]),
+              Track([GaussianState([1.0, 2.0], eye, timestamp=T0)])]
+    with pytest.raises(fo.FusionInputError, match=r"the mean of track .* real numbers"):
+        fs.StoneSoupTracker([(T0, tracks)], 2).step()
+
+
+@pytest.mark.parametrize("where", ["prediction", "noise"])
+@pytest.mark.parametrize("bad", [(2 + 5j) * np.eye(2), np.array([["1", "0"], ["0", "1"]],
+                                                                 dtype=object)])
+def test_chernoff_updater_refuses_a_covariance_that_is_not_real(where, bad):
+    """Fuzz E3: a complex covariance lost its imaginary part (a ComplexWarning only), strings
+    became numbers; both gave a measurement prediction."""
+    from fusion_opt.stonesoup import OptimalChernoffUpdater
+
+    noise = bad if where == "noise" else np.eye(2)
+    model = LinearGaussian(ndim_state=2, mapping=[0, 1], noise_covar=noise)
+    prediction = GaussianStatePrediction(np.zeros((2, 1)),
+                                         bad if where == "prediction" else 2 * np.eye(2),
+                                         timestamp=T0)
+    name = "predicted_state.covar" if where == "prediction" else "measurement_model.noise_covar"
+    with pytest.raises(fo.FusionInputError, match=rf"^{name} must be an array of real numbers"):
+        OptimalChernoffUpdater(measurement_model=model).predict_measurement(prediction, model)
 
 
 # --- fuse_states -----------------------------------------------------------------------------
