@@ -32,7 +32,8 @@ fixed at construction) and a cycle is refused. Each step:
 Estimates in step order (one per step at which it reported: one per step when every
 tracker has a scan at every step).
 
-A step that fails raises FusionInputError naming the node, and the nodes that had
+A step that fails raises FusionInputError (or a processing node's FusionSolverError)
+naming the node, the group of tracks whose fusion failed, and the nodes that had
 stepped before it (the network cannot take a tracker's step back; the trackers of this
 package keep their state when they refuse a scan, so the failing one has not stepped).
 """
@@ -45,7 +46,7 @@ from typing import Any, Protocol
 
 from .estimates import Estimates, check_time
 from .processing import ProcessingNode
-from .results import FusionInputError
+from .results import FusionInputError, FusionSolverError, in_context
 
 
 class Tracker(Protocol):
@@ -86,9 +87,9 @@ class Network:
                 reports = {s: out[s] for s in node.sources if s in out}
                 if reports:
                     out[name] = _processing_step(name, node, reports, time)
-        except FusionInputError as exc:
+        except (FusionInputError, FusionSolverError) as exc:
             stepped = f" (nodes {list(out)} had stepped)" if out else ""
-            raise FusionInputError(f"{exc}{stepped}") from exc
+            raise in_context(exc, "", stepped) from exc
         return out
 
     def run(self, scan_series: Iterable[Mapping[Hashable, Any]],
@@ -111,8 +112,8 @@ def _processing_step(name, node, reports, time) -> Estimates:
     """The node's fused Estimates, stamped with its network name if it has none."""
     try:
         fused = node.step(reports, time)
-    except FusionInputError as exc:  # name the node as the network knows it
-        raise FusionInputError(f"processing node {name!r}: {exc}") from exc
+    except (FusionInputError, FusionSolverError) as exc:  # name the node as the network
+        raise in_context(exc, f"processing node {name!r}: ") from exc  # knows it
     return fused if fused.node is not None else dataclasses.replace(fused, node=name)
 
 
@@ -127,8 +128,8 @@ def _sequence(value, name: str) -> list:
 def _tracker_step(name, tracker, scan) -> Estimates:
     try:
         estimates = tracker.step(scan)
-    except FusionInputError as exc:  # name the tracker as the network knows it
-        raise FusionInputError(f"tracker {name!r}: {exc}") from exc
+    except (FusionInputError, FusionSolverError) as exc:  # name the tracker as the
+        raise in_context(exc, f"tracker {name!r}: ") from exc  # network knows it
     if not isinstance(estimates, Estimates):
         raise FusionInputError(f"tracker {name!r} returned {type(estimates).__name__} from "
                                f"step, not an Estimates")

@@ -47,7 +47,8 @@ from .association import Group, associate, check_dims, check_method, check_thres
 from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates, check_time
-from .results import FusionInputError
+from .fusion import fuse
+from .results import FusionInputError, FusionSolverError, in_context
 from .validation import finite_real, hashable
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
@@ -129,9 +130,27 @@ class ProcessingNode:
                 p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
                 extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
             backend = self.backend if self.method in CI_FAMILY else None
-            r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
+            try:
+                r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
+            except (FusionInputError, FusionSolverError) as exc:
+                raise self._failed(exc, [groups[i] for i in idx], backend, extra) from None
             means[idx], covs[idx] = r.mean, r.cov
         return means, covs
+
+    def _failed(self, exc, groups: list[Group], backend, extra: dict):
+        """The error of a fuse_batch of groups, naming this node and the first group that
+        fails when fused alone (the batch's message says "problem b", which the caller does
+        not know): its sources, in the order its message numbers them as nodes, and their
+        track ids. Only after a failure, so one fusion per group at most."""
+        for b, g in enumerate(groups):
+            one = {k: v[b] if np.ndim(v) == 2 else v for k, v in extra.items()}
+            try:
+                fuse(g.means, g.covs, self.method, self.criterion, backend, **one)
+            except (FusionInputError, FusionSolverError) as alone:
+                tracks = " with ".join(f"source {s!r} track {i} (node {k})" for k, (s, i)
+                                       in enumerate(zip(g.sources, g.ids.tolist(), strict=True)))
+                return in_context(alone, f"{self._where()}: fusing {tracks}: ")
+        return in_context(exc, f"{self._where()}: ")
 
     def _ids(self, groups: list[Group], means: np.ndarray) -> np.ndarray:
         """Fused track ids (G,): inherited by shared (source, track id) pairs, else new."""
@@ -176,8 +195,10 @@ class ProcessingNode:
     # --- input checks, each naming the node and the argument or source ---
 
     def _err(self, message: str) -> FusionInputError:
-        where = "ProcessingNode" if self.name is None else f"ProcessingNode {self.name!r}"
-        return FusionInputError(f"{where}: {message}")
+        return FusionInputError(f"{self._where()}: {message}")
+
+    def _where(self) -> str:
+        return "ProcessingNode" if self.name is None else f"ProcessingNode {self.name!r}"
 
     def _check_sources(self, sources) -> tuple:
         if isinstance(sources, str | bytes | Mapping) or not hasattr(sources, "__iter__"):

@@ -51,6 +51,16 @@ class FusionSolverError(RuntimeError):
         return type(self), (self.backend, self.status, self.detail, self.role)
 
 
+def in_context(exc: FusionInputError | FusionSolverError, before: str, after: str = ""):
+    """A new error of exc's type whose message is exc's with `before` and `after` around
+    it (a FusionSolverError keeps its backend, status and role; the words go around its
+    detail): what a network says of the node or group a fusion failed in."""
+    if isinstance(exc, FusionSolverError):
+        return FusionSolverError(exc.backend, exc.status, f"{before}{exc.detail}{after}",
+                                 exc.role)
+    return FusionInputError(f"{before}{exc}{after}")
+
+
 def status_array(status) -> np.ndarray:
     """A read-only object array of Status from Status values or their strings."""
     values = np.asarray(status, dtype=object).ravel().tolist()

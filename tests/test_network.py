@@ -252,3 +252,29 @@ def test_a_failing_step_names_its_tracker_and_what_had_stepped():
     with pytest.raises(fo.FusionInputError, match="scan_series must be a sequence"):
         net.run(None)
     assert len(net.run([{"a": []}], times=(t for t in [1.0]))["f"]) == 1
+
+
+def test_a_fusion_that_fails_names_the_node_the_group_and_what_had_stepped():
+    """Fuzz E9 and E10: a FusionSolverError inside a processing node escaped the network
+    with neither the node nor the nodes that had stepped, and a refusal of the node's
+    fuse_batch named "problem 0", a position in a batch the caller never sees."""
+    eye = np.eye(2)
+    means = np.array([[0.0, 0.0], [50.0, 0.0]])  # two groups, the second's scales apart
+    scan = {"a": fo.Estimates(means, np.stack([eye, 1e-300 * eye]), [4, 5]),
+            "b": fo.Estimates(means, np.stack([eye, 1e300 * eye]), [7, 8])}
+    node = fo.ProcessingNode(["a", "b"], threshold=5.0, method="bci", name="P")
+    with pytest.raises(fo.FusionInputError, match=r"^ProcessingNode 'P': fusing source 'a' "
+                                                  r"track 5 \(node 0\) with source 'b' track "
+                                                  r"8 \(node 1\): covs span a ratio"):
+        node.step(scan)
+    n = 200
+    big = fo.Estimates(np.zeros((1, n)), np.eye(n)[None])
+    net = fo.Network({"a": EchoTracker(), "b": EchoTracker()},
+                     {"f": fo.ProcessingNode(["a", "b"], threshold=1.0, method="bci",
+                                              backend="clarabel")})
+    with pytest.raises(fo.FusionSolverError) as err:
+        net.step({"a": big, "b": big})
+    assert err.value.status == "memory_limit" and err.value.backend == "clarabel"
+    assert re.search(r"processing node 'f': ProcessingNode: fusing source 'a' track 0 "
+                     r"\(node 0\) with source 'b' track 0 \(node 1\): n = 200.*"
+                     r"nodes \['a', 'b'\] had stepped\)$", str(err.value))
