@@ -231,6 +231,12 @@ def test_crossing_config_refuses_bad_fields_by_name(field, value, match):
         scenarios.CrossingConfig(**{field: value})
 
 
+def test_a_table1_without_turn_windows_takes_any_turn_noise():
+    """No window, no drawn rate: the check of turn_noise_sd has nothing to bound (it took
+    the max of no rates)."""
+    assert scenarios.Table1Config(turn_windows=(), turn_noise_sd=1e300).turn_windows == ()
+
+
 @pytest.mark.parametrize("make, match", [
     (lambda: scenarios.Table1Config(n_steps=10**12), r"n_steps = 1000000000000: about"),
     (lambda: scenarios.Table2Config(n_steps=2, clutter_rate=1e12), "clutter_rate: about"),

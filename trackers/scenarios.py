@@ -116,7 +116,7 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
             discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
         except FusionInputError as exc:
             raise FusionInputError(f"{name}: turn rate {i} = {a!r}: {exc}") from None
-    if noise_sd == 0.0:
+    if noise_sd == 0.0 or len(rates) == 0:  # no window: no rate is drawn
         return
     worst = max(abs(a) for a in rates) + 40.0 * noise_sd
     try:
