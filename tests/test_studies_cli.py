@@ -87,6 +87,7 @@ def test_report_rebuilds_from_the_store_alone_without_simulating(tiny, tmp_path,
         f"report table1 --out {tmp_path}")
 
 
+@pytest.mark.slow  # 8 s; each table's run and report are in the default run apart
 def test_report_of_the_quick_paper_needs_no_flags(tmp_path, capsys):
     """The README's flow: `run paper --quick`, then `report table1`, `report table2` and
     `report paper` (here with tiny scenarios)."""

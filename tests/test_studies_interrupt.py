@@ -108,11 +108,12 @@ def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, 
     assert _resume(config, out) == uninterrupted
 
 
-# SIGTERM follows SIGINT's path once the handler is set: its cases (9 s) run with the
+# SIGTERM follows SIGINT's path once the handler is set, and a pool's signal handling is
+# also tested (idle workers) in the default run: those cases (7-9 s each) run with the
 # slow tests, so that the default run keeps within its budget
 @pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM,
                                                              marks=pytest.mark.slow)])
-@pytest.mark.parametrize("workers", ["1", "2"])
+@pytest.mark.parametrize("workers", ["1", pytest.param("2", marks=pytest.mark.slow)])
 def test_ctrl_c_or_sigterm_stops_within_2_s_and_the_study_resumes(config, uninterrupted,
                                                                   tmp_path, workers, sig):
     """SIGTERM as Ctrl-C: the stored runs are said, and the invocation is counted."""
