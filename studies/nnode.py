@@ -183,12 +183,17 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     if isinstance(spec, dict):
         configs.fields(spec, where, ("field", "values"), ("fixed",))
         configs.choice(f"{where}.field", spec["field"], STATIC)
+        if not isinstance(spec.get("fixed", {}), dict):
+            raise configs.ConfigError(f"{where}.fixed must be a table of [static] fields, got "
+                                      f"{spec['fixed']!r}")
         configs.table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
         where += ".values"
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
                                   f"{list(STATIC)}); give a table {{field, values, fixed}}"
                                   + configs.renamed_hint([name], STATIC))
+    else:
+        configs.items(where, spec)  # a list of the field's values
     field, values, fixed = sweep_spec(name, spec)
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)

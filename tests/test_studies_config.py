@@ -62,6 +62,11 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", '[sweeps]\nN = [2]\n[sweeps.bad]\nfield = "nope"\nvalues = [1]\n',
      "sweeps.bad.field must be one"),
     ("nnode", "[sweeps]\nN = [2]\nfoo = [1, 2]\n", "sweeps.foo sweeps no field of [static]"),
+    # fuzz F1: a TypeError traceback for a sweep that is not a list, or a fixed not a table
+    ("nnode", '[sweeps]\nN = "abc"\n', "sweeps.N must be a non-empty list, got 'abc'"),
+    ("nnode", "[sweeps]\nN = [2]\nrho = 0.5\n", "sweeps.rho must be a non-empty list"),
+    ("nnode", '[sweeps]\nN = [2]\n[sweeps.s]\nfield = "growth_assumed"\nvalues = [1.1]\n'
+              "fixed = 3\n", "sweeps.s.fixed must be a table of [static] fields, got 3"),
     ("nnode", "[sweeps]\nN = [2]\nchi_inv_assumed = [1.5]\n", "(chi_inv_assumed is now "
      "growth_assumed"),
     ("nnode", '[sweeps]\nN = [2]\n[sweeps.stale]\nfield = "growth_assumed"\nvalues = [1.5]\n'
