@@ -179,7 +179,9 @@ def _nearest(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np
         return []
     pairs = _candidates(points, threshold)
     i, j = np.ascontiguousarray(pairs.T)
-    d, near = _distance(points.take(i, axis=0) - points.take(j, axis=0), threshold)
+    with np.errstate(over="ignore"):  # a difference past float64 is inf: never near
+        diff = points.take(i, axis=0) - points.take(j, axis=0)
+    d, near = _distance(diff, threshold)
     keep = near & (owner.take(i) != owner.take(j))  # take: 3x indexing by a column's speed
     pairs, d = pairs[keep], d[keep]
     label = _components(pairs, M)
@@ -244,7 +246,9 @@ def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
         with np.errstate(over="ignore"):
             d = cdist(ps, cs)
         return d, d < threshold / s
-    return _distance(p[:, None, :] - c[None], threshold)
+    with np.errstate(over="ignore"):  # a difference past float64 is inf: never near
+        diff = p[:, None, :] - c[None]
+    return _distance(diff, threshold)
 
 
 @jit

@@ -181,8 +181,9 @@ class ProcessingNode:
         fids (K,)."""
         if not fids:  # also at the first step, before any fused track
             return np.zeros(0)
-        d = means - np.array([self._tracks[f].mean for f in fids])
-        return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
+        with np.errstate(over="ignore"):  # past float64 (means near 1e308): inf, the
+            d = means - np.array([self._tracks[f].mean for f in fids])  # farthest
+            return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
 
     def _remember(self, fused: Estimates) -> None:
         """Keep this step's fused tracks, forget those older than `memory` steps."""

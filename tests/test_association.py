@@ -2,6 +2,7 @@
 contents against the reports, a brute-force reference for "nearest", and bad input."""
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
@@ -226,3 +227,24 @@ def test_candidate_pairs_hold_every_pair_closer_than_the_threshold():
             missed = [(a, b) for a, b, c in zip(i, j, near, strict=True) if c and (a, b) not in got]
             assert not missed, (scale, missed)
             assert near.any()
+
+
+def test_means_near_the_float_limit_raise_no_warning():
+    """Fuzz F3: differences of means past float64 (1.7e308 - (-1.7e308)) warned of an
+    overflow from inside associate and a processing node (an error under -W error); such a
+    difference is a distance past every threshold."""
+    def est(x):
+        x = np.asarray(x, float)
+        return fo.Estimates(x, np.broadcast_to(np.eye(x.shape[1]), (*x.shape, x.shape[1])))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        groups = fo.associate({"a": est([[-1.7e308]]), "b": est([[1e307]]),
+                               "c": est([[1.7e308]])}, 1.7e308)
+        assert sorted(len(g) for g in groups) == [1, 2]  # b joins c; a - c overflows
+        fo.associate({"a": est([[1e300, -1e300], [-1.7e308, 1.7e308]]),
+                      "b": est([[1e300, -1e300], [1.7e308, -1.7e308]])}, 1e-300, "assignment")
+        node = fo.ProcessingNode(["a", "b"], threshold=1.0, method="bci")
+        for k in range(2):
+            scan = est([[1e300 * (k + 1), -1e300]])
+            node.step({"a": scan, "b": scan}, time=float(k))
