@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from .estimates import Estimates, track_ids
-from .limits import limits
+from .limits import fits, limits
 from .linalg import jit
 from .results import FusionInputError
 from .validation import finite_real, hashable
@@ -347,7 +347,14 @@ def _joined(pairs, owner, points, n_sources):
 
 
 def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
-    """Source by source, gated optimal assignment to the groups' centroids."""
+    """Source by source, gated optimal assignment to the groups' centroids; refused before
+    it starts when a source's cost matrix against up to all M estimates' groups, with its
+    distances, gate and the fallback's differences (about 4 + d doubles a cell), would pass
+    fusion_opt.limits.array_memory (16 sources of 4,000 took 4.2 GB)."""
+    M, d = points.shape
+    most = int(np.bincount(owner).max(initial=0))
+    fits(f"reports: {M} estimates, up to {most} from one source, assigned to up to {M} groups",
+         8.0 * most * M * (4 + d))
     groups: list[list[int]] = []
     centroids: list[np.ndarray] = []
     s = _unit(threshold)

@@ -248,3 +248,18 @@ def test_means_near_the_float_limit_raise_no_warning():
         for k in range(2):
             scan = est([[1e300 * (k + 1), -1e300]])
             node.step({"a": scan, "b": scan}, time=float(k))
+
+
+def test_an_assignment_beyond_array_memory_is_refused_before_it_starts(monkeypatch):
+    """Fuzz F2: "assignment" built each source's cost matrix against every group without a
+    check (16 sources of 4,000 estimates: 28 s and 4.2 GB against a 4 GiB limit), where
+    "nearest" checked its own arrays."""
+    monkeypatch.setattr(fo.limits, "array_memory", 2**20)
+    rng = np.random.default_rng(0)
+    reports = {s: fo.Estimates(rng.uniform(0, 1e6, (200, 2)), np.broadcast_to(np.eye(2),
+                                                                                (200, 2, 2)))
+               for s in "abc"}
+    with pytest.raises(fo.FusionInputError, match=r"^reports: 600 estimates, up to 200 from one "
+                                                  r"source.*fusion_opt.limits.array_memory"):
+        fo.associate(reports, 1.0, "assignment")
+    assert len(fo.associate(reports, 1.0, "nearest")) == 600  # what fits is not refused
