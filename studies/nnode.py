@@ -187,6 +187,9 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
             raise configs.ConfigError(f"{where}.fixed must be a table of [static] fields, got "
                                       f"{spec['fixed']!r}")
         configs.table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
+        if spec["field"] in spec.get("fixed", {}):  # the sweep's values would replace it
+            raise configs.ConfigError(f"{where}.fixed sets {spec['field']!r}, the field the "
+                                      "sweep varies")
         where += ".values"
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
@@ -195,6 +198,8 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     else:
         configs.items(where, spec)  # a list of the field's values
     field, values, fixed = sweep_spec(name, spec)
+    if len({str(v) for v in values}) != len(values):  # its results are kept by str(value)
+        raise configs.ConfigError(f"{where} lists a value more than once: {values!r}")
     for i, v in enumerate(configs.items(where, values)):
         STATIC[field](f"{where}[{i}]", v)
         _static_fits(f"{where}[{i}] = {v}", static | fixed | {field: v}, backend)

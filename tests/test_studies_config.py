@@ -67,6 +67,11 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[sweeps]\nN = [2]\nrho = 0.5\n", "sweeps.rho must be a non-empty list"),
     ("nnode", '[sweeps]\nN = [2]\n[sweeps.s]\nfield = "growth_assumed"\nvalues = [1.1]\n'
               "fixed = 3\n", "sweeps.s.fixed must be a table of [static] fields, got 3"),
+    # fuzz F10: a repeated value collapsed into one result; a fixed value of the swept
+    # field was dropped while the figure said the sweep held it
+    ("nnode", "[sweeps]\nN = [2, 2]\n", "sweeps.N lists a value more than once: [2, 2]"),
+    ("nnode", '[sweeps]\nN = [2]\n[sweeps.x]\nfield = "rho"\nvalues = [0.25, 0.75]\n'
+              "fixed = { rho = 0.1 }\n", "sweeps.x.fixed sets 'rho', the field the sweep"),
     ("nnode", "[sweeps]\nN = [2]\nchi_inv_assumed = [1.5]\n", "(chi_inv_assumed is now "
      "growth_assumed"),
     ("nnode", '[sweeps]\nN = [2]\n[sweeps.stale]\nfield = "growth_assumed"\nvalues = [1.5]\n'
