@@ -198,9 +198,10 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     else:
         configs.items(where, spec)  # a list of the field's values
     field, values, fixed = sweep_spec(name, spec)
+    values = configs.items(where, values)
     if len({str(v) for v in values}) != len(values):  # its results are kept by str(value)
         raise configs.ConfigError(f"{where} lists a value more than once: {values!r}")
-    for i, v in enumerate(configs.items(where, values)):
+    for i, v in enumerate(values):
         STATIC[field](f"{where}[{i}]", v)
         _static_fits(f"{where}[{i}] = {v}", static | fixed | {field: v}, backend)
         _static_scales(f"{where}[{i}] = {v}", static | fixed | {field: v})
