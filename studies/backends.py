@@ -145,9 +145,25 @@ def check(config: dict) -> None:
         twice = sorted({v for v in config[key] if config[key].count(v) > 1})
         if twice:
             raise configs.ConfigError(f"{key} lists {twice} more than once")
+    _check_sizes(config)
     if set(config["backends"]) == {"closed-form"} and 2 not in config["N"]:
         raise configs.ConfigError(f"backends ['closed-form'] fuses N = 2 only, which N = "
                                   f"{config['N']} does not hold: nothing would be measured")
+
+
+def _check_sizes(config: dict) -> None:
+    """Every cell's problems, and each backend's fusion of them, within fusion_opt.limits
+    (a problem and its copies about 4 N n^2 doubles; a batch with its results about 6 B N
+    (n^2 + n)), before anything runs."""
+    cells = [(n, N, config["backends"]) for n in config["n"] for N in config["N"]]
+    cells += [(n, N, config["large_backends"]) for n, N in config["large"]]
+    for n, N, backends in cells:
+        configs.fits(f"n = {n}, N = {N}", 8.0 * 4 * N * n * n)
+        for b in backends:
+            configs.fusion_fits(f"n = {n}, N = {N} ({b})", n, N, b)
+    for n, N in config["batch_shapes"]:
+        configs.fits(f"batch_shapes [{n}, {N}] with batch_size = {config['batch_size']}",
+                     8.0 * 6 * config["batch_size"] * N * (n * n + n))
 
 
 def _check_shapes(key: str, shapes) -> None:

@@ -105,6 +105,12 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("backends", 'backends = ["gurobi"]\n', "backends[0] must be one of"),
     ("backends", "batch_check = 0\n", "batch_check must be an integer >= 1"),
     ("backends", 'backends = ["closed-form"]\nN = [3, 7]\n', "fuses N = 2 only"),
+    # fuzz F4: each passed the check, made the output folder, then hit numpy's MemoryError
+    ("backends", "n = [1000000]\n", "n = 1000000, N = 2: about"),
+    ("backends", "N = [100000000]\n", "n = 2, N = 100000000: about"),
+    ("backends", "batch_size = 1000000000000\n", "with batch_size = 1000000000000: about"),
+    ("backends", "large = [[100000, 2]]\n", "n = 100000, N = 2: about"),
+    ("backends", "batch_shapes = [[2, 100000000]]\n", "batch_shapes [2, 100000000] with"),
     # sizes beyond memory, refused at the check, not when a run allocates them
     ("table1", "[check]\nsteps = 100000000000\n",
      "check.steps must be an integer >= 0 and <= 960, got 100000000000"),
