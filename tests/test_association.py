@@ -201,8 +201,11 @@ def test_dims_may_be_an_iterator():
 
 def test_joining_pair_by_pair_checks_the_memory_limit(monkeypatch):
     """The compiled joins keep an estimates x sources table: checked before allocating."""
+    from fusion_opt import association
+
     reports = _reports([[0.0, 0.0], [0.2, 0.0]], [[0.1, 0.0]])
     monkeypatch.setattr(fo.limits, "array_memory", fo.limits.array_memory)
+    monkeypatch.setattr(association, "_pairs_fit", lambda *args: None)  # the pairs' own check
     fo.limits.array_memory = 4.0  # 2 estimates of s0 and one of s1 in one component: 3 x 2
     with pytest.raises(fo.FusionInputError, match="3 estimates from 2 sources"):
         fo.associate(reports, 1.0)
@@ -263,3 +266,20 @@ def test_an_assignment_beyond_array_memory_is_refused_before_it_starts(monkeypat
                                                   r"source.*fusion_opt.limits.array_memory"):
         fo.associate(reports, 1.0, "assignment")
     assert len(fo.associate(reports, 1.0, "nearest")) == 600  # what fits is not refused
+
+
+def test_nearest_with_more_close_pairs_than_memory_is_refused_before_making_them(monkeypatch):
+    """Fuzz F9: every estimate within the threshold of every other made all M^2 / 2 pairs
+    without a check (4 sources of 3,000: 49 s and 5.7 GB past the 4 GiB limit). The pairs
+    are counted only when all of them could not fit; well-apart estimates still group."""
+    monkeypatch.setattr(fo.limits, "array_memory", 2**20)
+    rng = np.random.default_rng(0)
+
+    def reports(spread):
+        return {s: fo.Estimates(rng.uniform(0, spread, (200, 2)),
+                                np.broadcast_to(np.eye(2), (200, 2, 2))) for s in "abcd"}
+
+    with pytest.raises(fo.FusionInputError, match=r"^reports: 800 estimates with \d+ pairs "
+                                                  r"within the threshold.*array_memory"):
+        fo.associate(reports(1e-3), 1.0)
+    assert len(fo.associate(reports(1e6), 1.0)) == 800  # 800^2 / 2 pairs would not fit
