@@ -164,11 +164,14 @@ class Scenario:
                                  f", as p_detect), got {getattr(self, name)!r}")
         for name, ok, rule in (("p_detect", lambda v: 0 < v <= 1, "in (0, 1]"),
                                ("clutter_rate", lambda v: v >= 0, ">= 0"),
-                               ("noise_sd", lambda v: len(v) == 2 and min(v) > 0,
-                                "[sd_x, sd_y], each > 0")):
+                               ("noise_sd", lambda v: len(v) == 2 and 0 < min(v)
+                                and max(v) <= 1e100, "[sd_x, sd_y], each in (0, 1e100]")):
             for i, v in enumerate(getattr(self, name)):
                 if not ok(v):
                     raise ValueError(f"{name}[{i}] must be {rule}, got {v!r}")
+        if not self.steps * self.dt <= 1e10:  # Stone Soup's timestamps: datetimes, to 9999
+            raise ValueError(f"steps x dt must be at most 1e10 s, got {self.steps} x "
+                             f"{self.dt!r}")
         if len(self.region) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in self.region):
             raise ValueError(f"region must be [[x0, x1], [y0, y1]] with x0 < x1 and y0 < y1, "
                              f"got {self.region!r}")
@@ -214,9 +217,13 @@ def check(config: dict) -> None:
     configs.number("fusion.growth", fusion["growth"], low=1,
                    why="MBCI's chi^-1, the covariance growth over a missed detection")
     configs.choice("fusion.baseline", fusion["baseline"], list(config["rules"]))
-    configs.table(config["metrics"], "metrics", {
+    metrics = configs.table(config["metrics"], "metrics", {
         "cutoff": lambda w, x: configs.number(w, x, above=0),
         "order": lambda w, x: configs.number(w, x, low=1)})
+    if not abs(metrics["order"] * np.log10(metrics["cutoff"])) <= 100:  # OSPA sums them
+        raise configs.ConfigError(                                   # to this power
+            f"metrics.cutoff ^ metrics.order must lie in 1e-100..1e100, got "
+            f"{metrics['cutoff']!r} ^ {metrics['order']!r}")
     figure = configs.fields(config["figure"], "figure", ("rule",))
     configs.choice("figure.rule", figure["rule"], list(config["rules"]))
 

@@ -132,6 +132,13 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[scaling]\nN = [8]\n", "scaling.N must hold two or more distinct sizes (the "
      "log-log slope is fitted to them), got [8]"),
     ("nnode", "[scaling]\nn = [4, 4]\n", "scaling.n must hold two or more distinct sizes"),
+    # fuzz F5: each passed the check and failed run 0 (OverflowError, scipy's "array must
+    # not contain infs", "Python int too large to convert to C int")
+    ("stonesoup", "[metrics]\norder = 1e300\n", "metrics.cutoff ^ metrics.order must lie"),
+    ("stonesoup", "[metrics]\ncutoff = 1e300\n", "metrics.cutoff ^ metrics.order must lie"),
+    ("stonesoup", "[scenario]\nnoise_sd = [[1e300, 1.0], [3.0, 1.0], [2.0, 2.0]]\n",
+     "noise_sd[0] must be [sd_x, sd_y], each in (0, 1e100]"),
+    ("stonesoup", "[scenario]\ndt = 1e300\n", "steps x dt must be at most 1e10 s"),
     ("stonesoup", "[scenario]\nclutter_rate = [1e12, 1.0, 1.0]\n",
      "scenario.clutter_rate and steps: about"),
 ]
