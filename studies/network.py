@@ -497,7 +497,8 @@ def _markdown(config, table, summary, runs) -> list[str]:
              f"Mean and 95% interval over runs. OSPA and GOSPA on position (c = {m['cutoff']}, "
              f"p = {m['order']}, GOSPA alpha = {m['alpha']}); card. error: mean |n_est - "
              "n_true|; id switches / target and ANEES (mean 4-dof NEES of the matched "
-             "estimates; 4 if consistent) as defined in studies/network.py. 95% intervals: "
+             "estimates; 4 if consistent; over the runs in which the node matched a target, "
+             "- if none) as defined in studies/network.py. 95% intervals: "
              f"bootstrap percentile over the runs ({stats.RESAMPLES} seeded resamples).", "",
              "| node | rule | level | " + " | ".join(HEADERS) + " |", "|---" * 8 + "|"]
     for row, node, rule, level in table:

@@ -30,8 +30,13 @@ def _resamples(runs: int) -> np.ndarray:
 
 def mean_ci(values, level: float = 0.95) -> tuple[float, float, float]:
     """(mean, low, high): the mean of values (R,) and its bootstrap percentile interval
-    (with one run, or all values equal, the interval is the point)."""
+    (with one run, or all values equal, the interval is the point), over the runs that
+    define the value (NaN: not defined in that run, as the ANEES of a node that matched no
+    target); NaN for all three when no run defines it (`fmt` writes "-")."""
     x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    if x.size == 0:
+        return np.nan, np.nan, np.nan
     m = float(x.mean())
     if x.size < 2:
         return m, m, m
@@ -53,7 +58,9 @@ def paired(a, b, level: float = 0.95) -> dict:
 
 
 def fmt(mean: float, low: float, high: float, digits: int = 4) -> str:
-    """'0.1234 [0.1200, 0.1268]'."""
+    """'0.1234 [0.1200, 0.1268]'; '-' for a value no run defines."""
+    if np.isnan(mean):
+        return "-"
     return f"{mean:.{digits}g} [{low:.{digits}g}, {high:.{digits}g}]"
 
 
@@ -74,7 +81,10 @@ def write_csv(path, summary: dict, columns, paper: dict, paper_columns) -> None:
 
 
 def write_rows(path, rows: list[dict]) -> None:
-    """A CSV of rows (dicts with the same keys, in the first row's order)."""
+    """A CSV of rows (dicts with the same keys, in the first row's order); a value no run
+    defines (NaN) is an empty cell."""
+    rows = [{k: "" if isinstance(v, float) and np.isnan(v) else v for k, v in r.items()}
+            for r in rows]
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else [])
         w.writeheader()

@@ -47,3 +47,13 @@ def test_paired_difference_keeps_a_symmetric_t_interval():
     assert p["mean_diff"] == pytest.approx(d.mean())
     assert (p["low"], p["high"]) == pytest.approx((d.mean() - half, d.mean() + half))
     assert p["share_better"] == 0.5 and p["runs"] == 4
+
+
+def test_a_value_some_runs_do_not_define_is_summarised_over_the_others(tmp_path):
+    """Fuzz F6: the ANEES of a node that matched no target is NaN in that run, and the
+    network study's tables showed 'nan [nan, nan]'. The mean and interval are taken over
+    the runs that define it; none: '-' in a table, an empty cell in a CSV."""
+    assert stats.mean_ci([1.0, np.nan, 3.0]) == stats.mean_ci([1.0, 3.0])
+    assert stats.fmt(*stats.mean_ci([np.nan, np.nan])) == "-"
+    stats.write_rows(tmp_path / "t.csv", [{"a": np.nan, "b": 1.5}])
+    assert (tmp_path / "t.csv").read_text().splitlines() == ["a,b", ",1.5"]
