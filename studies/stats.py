@@ -47,8 +47,13 @@ def mean_ci(values, level: float = 0.95) -> tuple[float, float, float]:
 
 def paired(a, b, level: float = 0.95) -> dict:
     """Paired comparison of a against b over the same runs: mean of a - b with its
-    Student-t interval, and the share of runs where a < b (a better, for an error)."""
+    Student-t interval, and the share of runs where a < b (a better, for an error), over
+    the runs that define both (`mean_ci`); NaN (written "-") if none does."""
     d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    d = d[~np.isnan(d)]
+    if d.size == 0:
+        return {"mean_diff": np.nan, "low": np.nan, "high": np.nan, "share_better": np.nan,
+                "runs": 0}
     m = float(d.mean())
     half = 0.0
     if d.size >= 2:

@@ -165,7 +165,10 @@ def _scores(config, data, series) -> dict:
             matched.append(alive[j])
             matched_covs.append(covs[i])
     _spectral_norms(per_target, matched, matched_covs)
-    scores = {key: float(sum(np.mean(v) for v in d.values())) for key, d in per_target.items()}
+    # summed over the targets matched at least once; a node that matched none has no MSE
+    # or MNCM in this run (NaN, left out of the tables' means), not a perfect 0
+    scores = {key: float(sum(np.mean(v) for v in d.values())) if d else np.nan
+              for key, d in per_target.items()}
     return scores | {"ospa": float(np.mean(ospa)), "gospa": float(np.mean(gospa)),
                      "card_err": float(np.mean(card))}
 
@@ -225,8 +228,9 @@ def _markdown(config, rows, results) -> str:
               "|---|---|---|---|"]
     for proc, pair in _paired(config, results).items():
         pm, pc = pair["mse"], pair["mncm"]
+        share = "-" if np.isnan(pm["share_better"]) else f"{pm['share_better']:.2f}"
         lines.append(f"| {proc} | {stats.fmt(pm['mean_diff'], pm['low'], pm['high'], 3)} | "
-                     f"{pm['share_better']:.2f} | "
+                     f"{share} | "
                      f"{stats.fmt(pc['mean_diff'], pc['low'], pc['high'], 3)} |")
     return "\n".join(lines) + "\n"
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from studies import table2
+from studies import config, stats, table2
 from studies.__main__ import main
 
 TINY = """
@@ -67,3 +67,17 @@ def test_spectral_norms_are_the_largest_eigenvalues_grouped_by_target():
     empty = {k: defaultdict(list) for k in ("mncm", "mncm_pos")}
     table2._spectral_norms(empty, [], [])
     assert not empty["mncm"] and not empty["mncm_pos"]
+
+
+def test_a_node_that_matched_no_target_has_no_mse_not_a_perfect_zero():
+    """Fuzz F7: MSE and MNCM sum over the targets matched at least once, so a node that
+    matched none scored 0.0, the best value, while its OSPA said it missed everything; it
+    now has none in that run (NaN, left out of the tables' means; '-' when no run has one)."""
+    cfg = config.load("table2", quick=True)
+    cfg["scenario"].update(n_steps=10, meas_sd=1e30, n_particles=3)
+    table2.check(cfg)
+    result, _ = table2.run_one(cfg, 1, np.random.SeedSequence(1))
+    row = result["RBMCDA 1"]
+    assert all(np.isnan(row[k]) for k in ("mse", "mncm", "mse_pos", "mncm_pos"))
+    assert row["ospa"] == cfg["metrics"]["cutoff"]  # every target missed
+    assert stats.paired([np.nan], [1.0])["runs"] == 0
