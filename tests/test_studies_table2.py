@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from studies import config, stats, table2
+from studies import config as study_config
+from studies import stats, table2
 from studies.__main__ import main
 
 TINY = """
@@ -73,7 +74,7 @@ def test_a_node_that_matched_no_target_has_no_mse_not_a_perfect_zero():
     """Fuzz F7: MSE and MNCM sum over the targets matched at least once, so a node that
     matched none scored 0.0, the best value, while its OSPA said it missed everything; it
     now has none in that run (NaN, left out of the tables' means; '-' when no run has one)."""
-    cfg = config.load("table2", quick=True)
+    cfg = study_config.load("table2", quick=True)
     cfg["scenario"].update(n_steps=10, meas_sd=1e30, n_particles=3)
     table2.check(cfg)
     result, _ = table2.run_one(cfg, 1, np.random.SeedSequence(1))
