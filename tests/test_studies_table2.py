@@ -5,6 +5,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from studies import config as study_config
 from studies import stats, table2
@@ -70,6 +71,7 @@ def test_spectral_norms_are_the_largest_eigenvalues_grouped_by_target():
     assert not empty["mncm"] and not empty["mncm_pos"]
 
 
+@pytest.mark.slow  # a whole run (3 s); the tables' handling of NaN is tested in stats'
 def test_a_node_that_matched_no_target_has_no_mse_not_a_perfect_zero():
     """Fuzz F7: MSE and MNCM sum over the targets matched at least once, so a node that
     matched none scored 0.0, the best value, while its OSPA said it missed everything; it
