@@ -125,7 +125,9 @@ def _call(root, env=None):
     return int(out.stdout)
 
 
-@pytest.mark.parametrize("drop", [False, True])
+# drop=False shows numba's own hazard (3-4 s of compiles), not this package's code: with
+# the slow tests
+@pytest.mark.parametrize("drop", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_a_cached_caller_runs_the_edited_kernel(tmp_path, drop):
     """The hazard itself with numba's real cache: outer.call (cached) calls inner.value;
     after an edit of inner.py alone, numba on its own still runs the old value (drop=False:
