@@ -272,10 +272,14 @@ def _measurements(module, out: Path, recorded: dict, record: Path) -> None:
 
 
 def _out(text: str) -> Path:
-    """The --out folder; an empty one is refused (it would silently be the current one)."""
+    """The --out folder; an empty one is refused (it would silently be the current one),
+    and so is a path that exists and is not a folder."""
     if not text:
         raise configs.ConfigError("--out must name a folder, got ''")
-    return Path(text)
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise configs.ConfigError(f"--out must name a folder, but {text} is a file")
+    return out
 
 
 def _list() -> int:

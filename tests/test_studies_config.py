@@ -206,6 +206,17 @@ def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, caps
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("command", ["run", "report"])
+def test_an_out_that_is_a_file_is_refused_by_name(tmp_path, capsys, command):
+    """Fuzz (second campaign): `run --out FILE` said only "[Errno 20] Not a directory",
+    `report` that the study had not been run there."""
+    path = tmp_path / "a_file"
+    path.write_text("keep me")
+    err = _refused(capsys, [command, "table1", "--out", str(path)])
+    assert f"--out must name a folder, but {path} is a file" in err
+    assert path.read_text() == "keep me"
+
+
 def test_runs_flag_does_not_apply_to_a_benchmark(tmp_path, capsys):
     assert "--runs does not apply" in _refused(capsys, ["run", "backends", "--runs", "3",
                                                         "--out", str(tmp_path)])
