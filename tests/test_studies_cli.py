@@ -228,11 +228,11 @@ def test_report_of_a_benchmark_rebuilds_from_its_meta_json(tmp_path):
 
 
 def test_an_out_folder_that_cannot_be_made_is_refused_in_one_line(tiny, tmp_path, capsys):
-    (tmp_path / "file").write_text("")
-    assert main(["run", "table1", "--config", str(tiny), "--out", str(tmp_path / "file"),
-                 "--quiet"]) == 2
+    (tmp_path / "file").write_text("")  # a folder below a file cannot be made (an --out
+    out = tmp_path / "file" / "sub"        # that is a file is refused by name, apart)
+    assert main(["run", "table1", "--config", str(tiny), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "file/table1" in err
+    assert len(err.strip().splitlines()) == 1 and "file/sub/table1" in err
 
 
 def test_a_study_whose_extra_is_missing_is_listed_and_refused_in_one_line(tmp_path, capsys,
