@@ -86,10 +86,12 @@ def estimates_bytes(m: int, n: int) -> float:
     return 8.0 * m * (n + 1 + 3.0 * n * n)
 
 
-def fits(what: str, n_bytes: float) -> None:
-    """Refuses (FusionInputError), before allocating, arrays of about n_bytes over
-    array_memory; `what` names the arguments that set their size."""
-    if n_bytes > limits.array_memory:
+def fits(what: str, n_bytes: float, limit: str = "array_memory") -> None:
+    """Refuses (FusionInputError), before allocating, arrays of about n_bytes over the
+    limit of that name (array_memory unless told); `what` names the arguments that set
+    their size."""
+    cap = getattr(limits, limit)
+    if n_bytes > cap:
         raise FusionInputError(
             f"{what}: about {n_bytes / 2**30:.3g} GiB of arrays, over the limit of "
-            f"{limits.array_memory / 2**30:.3g} GiB (fusion_opt.limits.array_memory)")
+            f"{cap / 2**30:.3g} GiB (fusion_opt.limits.{limit})")

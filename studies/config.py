@@ -26,6 +26,7 @@ from importlib import resources
 from pathlib import Path
 
 import fusion_opt as fo
+from fusion_opt.limits import fits as limits_fits
 from fusion_opt.validation import finite_real
 
 
@@ -278,11 +279,12 @@ def _tuples(x):
 
 def fits(where: str, n_bytes: float, limit: str = "array_memory") -> None:
     """Refuse sizes (named by where) whose arrays take about n_bytes, over the limit of
-    fusion_opt.limits of that name: checked before a run allocates them."""
-    cap = getattr(fo.limits, limit)
-    if n_bytes > cap:
-        raise ConfigError(f"{where}: about {n_bytes / 2**30:.3g} GiB of arrays, over the "
-                          f"limit of {cap / 2**30:.3g} GiB (fusion_opt.limits.{limit})")
+    fusion_opt.limits of that name (`fusion_opt.limits.fits`, as a ConfigError): checked
+    before a run allocates them."""
+    try:
+        limits_fits(where, n_bytes, limit)
+    except fo.FusionInputError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def fusion_fits(where: str, n: int, N: int, backend: str) -> None:

@@ -195,8 +195,6 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "
                                   f"{list(STATIC)}); give a table {{field, values, fixed}}"
                                   + configs.renamed_hint([name], STATIC))
-    else:
-        configs.items(where, spec)  # a list of the field's values
     field, values, fixed = sweep_spec(name, spec)
     values = configs.items(where, values)
     if len({str(v) for v in values}) != len(values):  # its results are kept by str(value)
@@ -449,7 +447,7 @@ def run_one(config: dict, index: int, seed: np.random.SeedSequence) -> tuple[dic
 def sweep_spec(name: str, spec) -> tuple[str, list, dict]:
     """(field, values, fixed settings) of a sweep: a list of values of the field `name`,
     or a table {field, values, fixed} (a sweep of one field with others held apart)."""
-    if isinstance(spec, list):
+    if not isinstance(spec, dict):  # a list (`check` refuses anything else)
         return name, spec, {}
     return spec["field"], spec["values"], spec.get("fixed", {})
 
