@@ -275,3 +275,45 @@ def test_cross_covariance_step_refuses_what_is_no_joint_covariance():
                      (1e308 * np.ones((1, 1, 1, 1)), "overflows float64")):
         with pytest.raises(FusionInputError, match=match):
             kalman.cross_covariance_step(C, np.zeros(C.shape[0], dtype=bool), model)
+
+
+def _exact_update(P, H, R):
+    """P - P H^T (H P H^T + R)^-1 H P in exact rational arithmetic (d = 2), floats in."""
+    from fractions import Fraction as Fr
+
+    def mat(X):
+        return [[Fr(float(x)) for x in row] for row in np.atleast_2d(X)]
+
+    def mul(X, Y):
+        return [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))]
+                for i in range(len(X))]
+
+    P_, H_, R_ = mat(P), mat(H), mat(R)
+    Ht = [list(c) for c in zip(*H_, strict=True)]
+    PHt = mul(P_, Ht)
+    S = [[a + b for a, b in zip(r1, r2, strict=True)] for r1, r2 in zip(mul(H_, PHt), R_,
+                                                                         strict=True)]
+    det = S[0][0] * S[1][1] - S[0][1] * S[1][0]
+    Si = [[S[1][1] / det, -S[0][1] / det], [-S[1][0] / det, S[0][0] / det]]
+    KSK = mul(mul(PHt, Si), [list(c) for c in zip(*PHt, strict=True)])
+    return np.array([[float(p - k) for p, k in zip(r1, r2, strict=True)]
+                     for r1, r2 in zip(P_, KSK, strict=True)])
+
+
+@pytest.mark.parametrize("ratio", [1e8, 1e16, 1e20])
+def test_update_keeps_a_vague_prior_positive_definite_and_exact(ratio):
+    """A prior ratio times the measurement noise: P - K S K^T cancels to rounding (at 1e16
+    it lost positive definiteness and a Table 1 run with prior_cov = 1e16 failed at its
+    second step); Joseph's form keeps every entry of P+ at the exact update's, to 1e-9 of
+    its diagonal's scale (the smallest eigenvalue, 1e-16 of the largest at ratio 1e16, is
+    below the rounding of an eigenvalue solver; Cholesky still factors P+)."""
+    model = models.turn_model(0.0, q=0.1, r=0.05, dt=0.025)
+    rng = np.random.default_rng(3)
+    G = rng.standard_normal((4, 4))
+    P = ratio * 0.05 * (G @ G.T / 4 + np.eye(4))
+    m, P_new = kalman.update(np.zeros(4), P, np.ones(2), model.H, model.R)
+    exact = _exact_update(P, model.H, model.R)
+    scale = np.sqrt(np.outer(np.diag(exact), np.diag(exact)))
+    assert np.all(np.abs(P_new - exact) <= 1e-9 * scale)
+    np.linalg.cholesky(P_new)  # positive definite in float64, as a fusion checks it
+    assert np.all(np.isfinite(m))

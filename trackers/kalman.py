@@ -6,8 +6,14 @@ For a model x_k = A x_{k-1} + q, y_k = H x_k + r (q ~ N(0, Q), r ~ N(0, R)):
 
     predict:  m- = A m,  P- = A P A^T + Q
     update:   v = y - H m-,  S = H P- H^T + R,  K = P- H^T S^-1,
-              m = m- + K v,  P = P- - K S K^T
+              m = m- + K v,  P = (I - K H) P- (I - K H)^T + K R K^T
     likelihood:  p(y | past) = N(y; H m-, S).
+
+P is updated in Joseph's form (Bucy & Joseph 1968), a sum of two positive semidefinite
+terms, not as P- - K S K^T: where P- is far above R (a vague prior, a long run of misses)
+that difference cancels to rounding; at P- = 1e16 R it left P indefinite and a Table 1 run
+with prior_cov = 1e16 failed at its second step. Joseph's form matches the exact update
+there (tests/test_trackers_kalman.py) for two more small products per update.
 
 The step functions take means (..., n) and covariances (..., n, n) with any leading batch
 axes (e.g. one per particle), so a particle filter calls them once for all particles.
@@ -69,11 +75,14 @@ def _gain_t(S, PHt):
     return np.linalg.solve(S, PHt.swapaxes(-1, -2))
 
 
-def update_innovation(m, P, v, S, PHt):
-    """Kalman update from the innovation (v, S, PHt) of ``innovation``: (m+, P+)."""
+def update_innovation(m, P, v, S, PHt, H, R):
+    """Kalman update from the innovation (v, S, PHt) of ``innovation``: (m+, P+), P+ in
+    Joseph's form (module docstring)."""
     Kt = _gain_t(S, PHt)
     m_new = m + (v[..., None, :] @ Kt)[..., 0, :]  # m + K v
-    P_new = P - PHt @ Kt  # = P - K S K^T
+    K = Kt.swapaxes(-1, -2)
+    I_KH = np.eye(P.shape[-1]) - K @ H
+    P_new = I_KH @ P @ I_KH.swapaxes(-1, -2) + K @ R @ Kt
     return m_new, 0.5 * (P_new + P_new.swapaxes(-1, -2))
 
 
@@ -84,12 +93,12 @@ def update_with_loglik(m, P, y, H, R):
     Returns (m+, P+, loglik) with loglik of shape (...).
     """
     v, S, PHt = innovation(m, P, y, H, R)
-    return *update_innovation(m, P, v, S, PHt), innovation_loglik(v, S)
+    return *update_innovation(m, P, v, S, PHt, H, R), innovation_loglik(v, S)
 
 
 def update(m, P, y, H, R):
     """Kalman update. m (..., n), P (..., n, n), y (d,) or (..., d) -> (m+, P+)."""
-    return update_innovation(m, P, *innovation(m, P, y, H, R))
+    return update_innovation(m, P, *innovation(m, P, y, H, R), H, R)
 
 
 def log_likelihood(m, P, y, H, R):

@@ -273,7 +273,8 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
     index = np.full(log_joint.shape, K)  # event -> filter; clutter is never looked up
     index[rows, cols + 2] = np.arange(K)
     j = index[r, choice[r]]
-    m_new, P_new = kalman.update_innovation(m[j], P[j], v[j], S[j], PHt[j])
+    m_new, P_new = kalman.update_innovation(m[j], P[j], v[j], S[j], PHt[j], p.model.H,
+                                          p.model.R)
     c = choice[r] - 2
     born = c < 0
     if born.any():
