@@ -114,6 +114,8 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
     try:
         a = real_array(ids, "ids")
     except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
+        if isinstance(ids, list | tuple) and all(type(v) is int for v in ids):
+            _refuse_range(ids)  # Python integers beyond int64 make an object array
         raise FusionInputError(f"ids must be integers (map other track names to integers): "
                                f"{exc}") from None
     if np.asarray(ids).dtype.kind in "iu":
@@ -122,12 +124,27 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
         raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
     if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
         raise FusionInputError("ids must be integers")
-    if m and (a.max() >= 2**62 or a.min() <= -(2**62)):
-        raise FusionInputError("ids must fit in a 64-bit integer")
+    if m and not _fit_int64(a):
+        _refuse_range(a.tolist())
     out = a.astype(np.int64)
     if unique and len(np.unique(out)) != m:
         raise FusionInputError(f"ids must be unique within one Estimates, got {out.tolist()}")
     return out
+
+
+def _fit_int64(a: np.ndarray) -> bool:
+    """Whether every value of a (integers, or floats that are whole numbers) is an int64."""
+    if a.dtype.kind == "f":  # 2^63 is a float; the int64 maximum, 2^63 - 1, is not
+        return bool(a.max() < 2.0**63 and a.min() >= -(2.0**63))
+    info = np.iinfo(np.int64)
+    return bool(a.max() <= info.max and a.min() >= info.min)
+
+
+def _refuse_range(values) -> None:
+    """Raises for the first of values (Python numbers) outside int64."""
+    bad = next(v for v in values if not -(2**63) <= v < 2**63)
+    raise FusionInputError(f"ids must fit in a signed 64-bit integer (-2^63 to 2^63 - 1), "
+                           f"got {bad!r}")
 
 
 def check_time(time) -> float | None:

@@ -1,6 +1,8 @@
 """Estimates: what it holds, that it is validated on construction by field (with the node,
 time and track id of the culprit), and m = 0."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -109,3 +111,20 @@ def test_a_group_made_by_hand_is_checked():
                         ((("a", "b"), [1], [[0.0, 0.0]], [np.eye(2)]), "2 sources but 1")):
         with pytest.raises(fo.FusionInputError, match=match):
             fo.Group(*args)
+
+
+def test_every_int64_id_is_kept_and_one_beyond_is_refused_with_its_value():
+    """Fuzz G2: ids at or beyond 2^62 were refused as not fitting 64 bits (hash() of a
+    track name lands there half the time)."""
+    means, covs = np.zeros((3, 2)), np.tile(np.eye(2), (3, 1, 1))
+    ids = [2**62, 2**63 - 1, -(2**63)]
+    assert fo.Estimates(means, covs, ids).ids.tolist() == ids
+    assert fo.Estimates(means, covs, [2.0**62, 3.0, -(2.0**63)]).ids.tolist() == [2**62, 3,
+                                                                              -(2**63)]
+    for bad, shown in [(np.array([1, 2, 2**63], dtype=np.uint64), "9223372036854775808"),
+                       ([1.0, 2.0, 2.0**63], "9.223372036854776e+18"),
+                       ([1, 2, 2**64], "18446744073709551616"),
+                       ((1, 2, -(2**63) - 1), "-9223372036854775809")]:
+        with pytest.raises(fo.FusionInputError, match=rf"ids must fit in a signed 64-bit "
+                           rf"integer \(-2\^63 to 2\^63 - 1\), got {re.escape(shown)}$"):
+            fo.Estimates(means, covs, bad)
