@@ -87,16 +87,33 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
         raise FusionInputError(f"covs must have shape (N, n, n), got {covs.shape}")
     req = core.request("bci", criterion, None, {})
     means, covs = core.arrays(np.zeros(covs.shape[:-1]), covs, False)
-    w = real_array(weights, "weights").copy()  # C-contiguous, writable: one compiled type
+    w = _simplex_weights(weights, covs.shape[1])
     N = covs.shape[1]
-    if w.shape != (N,):
-        raise FusionInputError(f"weights must have shape ({N},), got {w.shape}")
-    if not np.all(np.isfinite(w)) or (w < 0).any() or abs(w.sum() - 1.0) > 1e-9:
-        raise FusionInputError("weights must be finite, >= 0 and sum to 1")
     a = core._Arrays(1, N, covs.shape[2])
     core._prepare(means, covs, *core._unit_scales(1, N), a, core._NAMES, False)
     gap = newton.certificate(a.F[0], w, work(N, covs.shape[2]), req.trace)[0]
     return float(np.ldexp(gap, a.k[0]) if req.trace else gap)
+
+
+def _simplex_weights(weights, N: int) -> np.ndarray:
+    """weights (N,) as float64 on the simplex: finite, >= 0 and summing to 1 within 1e-9,
+    or N times the rounding unit of a lower precision they came in (float32 weights of a
+    float64 solution sum to 1 only within 1e-8); divided by their sum."""
+    given = np.asarray(weights).dtype
+    w = real_array(weights, "weights").copy()  # C-contiguous, writable: one compiled type
+    if w.shape != (N,):
+        raise FusionInputError(f"weights must have shape ({N},), got {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise FusionInputError(f"weights must be finite, got {w.tolist()}")
+    if (w < 0).any():
+        i = int(np.argmin(w))
+        raise FusionInputError(f"weights must be >= 0, got {float(w[i])!r} at node {i}")
+    eps = np.finfo(given).eps if given.kind == "f" else 0.0
+    tol = max(1e-9, N * eps)
+    if not abs(w.sum() - 1.0) <= tol:
+        raise FusionInputError(f"weights must sum to 1 (within {tol:.3g}), got a sum of "
+                               f"{float(w.sum())!r}")
+    return w / w.sum()
 
 
 def warmup(n: int, N: int, criterion="trace", backend=None) -> float:

@@ -174,3 +174,25 @@ def test_clarabel_solves_the_table1_pair_that_once_failed(criterion):
     grid = np.linspace(0.0, 1.0, 100_001)
     f = objective(TABLE1_PAIR, np.stack([grid, 1 - grid], axis=1), criterion)
     assert r.objective == pytest.approx(f.min(), rel=1e-6, abs=1e-8)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_certificate_takes_float32_weights_and_names_what_is_wrong(criterion):
+    """Fuzz G3: float32 weights of an optimum sum to 1 only within 1e-8 and were refused
+    as "must be finite, >= 0 and sum to 1", naming neither the condition nor the sum. They
+    are taken on the simplex (divided by their sum), where the certificate still bounds
+    the suboptimality; what is refused says which condition fails, with the value."""
+    rng = np.random.default_rng(12)
+    means, covs = random_instance(rng, 3, 4)
+    f_star = fo.bci(means, covs, criterion).objective
+    optimum = fo.bci(means, covs, criterion).weights.astype(np.float32)
+    for w, most in ((optimum, 1e-5 * abs(f_star)), (np.float32([0.2, 0.3, 0.1, 0.4]), np.inf)):
+        w64 = w.astype(float) / w.astype(float).sum()
+        g = fo.optimality_gap(covs, w, criterion)
+        assert objective(covs, w64, criterion) - f_star - 1e-12 <= g <= most
+    for w, message in (([0.5, 0.6, -0.1, 0.0], r"weights must be >= 0, got -0\.1 at node 2"),
+                       ([0.5, 0.6, 0.1, 0.0], r"sum to 1 \(within 1e-09\), got a sum of 1\.2"),
+                       ([np.nan, 0.5, 0.5, 0.0], r"weights must be finite, got \[nan"),
+                       ([0.2, 0.3, 0.5, 1e-8], r"sum to 1 \(within 1e-09\), got a sum of 1\.0")):
+        with pytest.raises(fo.FusionInputError, match=message):
+            fo.optimality_gap(covs, w, criterion)
