@@ -63,7 +63,8 @@ How the numbers stay finite and accurate:
 A rule that still meets a non-finite or non-positive-definite result raises
 FusionSolverError(method, "numerical_error", ..., role="method"); it never returns one.
 
-`weights` are the CI weights for fast-ci and ifci, (w, 1 - w) for ici ("ci_weights"), and
+`weights` are the CI weights for fast-ci and ifci, (1 - w, w) for ici ("ci_weights": as
+for CI, weight 1 on a node gives that node's estimate, since w = 0 gives P_a), and
 the gain shares tr(K_i) / n (summing to 1, negative where a gain is, e.g. for known-cross)
 for naive, known-cross and ei ("gain_shares").
 """
@@ -179,7 +180,7 @@ def ici(means, covs, criterion) -> RuleOutput:
     ka = np.exp(la - g2)  # K_a = T diag(a / (a + b mu^2)) T^-1, K_b = I - K_a
     kb = np.exp(lb + 2.0 * l - g2)
     gains = np.stack([(T * ka) @ Tinv, (T * kb) @ Tinv])
-    weights = np.array([np.exp(lb), np.exp(la)])
+    weights = np.array([np.exp(la), np.exp(lb)])  # CI's sense: (1, 0) gives node a
     return _finish("ici", means, F @ F.T, gains, Status.OPTIMAL, weights)
 
 

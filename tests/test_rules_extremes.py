@@ -52,7 +52,7 @@ def test_denormal_covariances_through_fuse(name):
     elif name == "known-cross":
         P, m = exact_blue(means, cross)
     elif name == "ici":
-        P, m = to_float(exact_ici_cov(covs, r.weights[0])), r.mean
+        P, m = to_float(exact_ici_cov(covs, r.weights[1])), r.mean
     else:
         P, m = decimal_ei(means, covs)
     assert_close(r.cov, P, 1e-12)

@@ -46,7 +46,7 @@ def test_ici_is_the_minimum_over_a_brute_force_grid(criterion):
         for n in (2, 3):
             covs = problem(rng, 2, n, spread, log10_cond=3.0)[1]
             out = RULES["ici"](np.zeros((2, n)), covs, criterion)
-            P = exact_ici_cov(covs, out.weights[0])
+            P = exact_ici_cov(covs, out.weights[1])  # (1 - w, w)
             assert_close(out.cov, to_float(P), 1e-12)
             best = min(exact_size(exact_ici_cov(covs, w), criterion) for w in W_GRID)
             assert exact_size(P, criterion) <= best * (1 + Fraction(1e-15))
@@ -60,10 +60,22 @@ def test_ici_scales_1e16_apart_give_the_better_node(scale):
     covs = np.stack([scale * np.array([[2.0, 1.0], [1.0, 2.0]]), np.diag([1.0, 3.0])])
     r = fo.fuse(M_ISSUE, covs, method="ici")
     assert np.linalg.eigvalsh(r.cov).min() > 0
-    assert r.weights[0] == 1.0 and r.objective == pytest.approx(4.0, rel=1e-15)
+    assert r.weights[1] == 1.0 and r.objective == pytest.approx(4.0, rel=1e-15)
     np.testing.assert_allclose(r.cov, covs[1], rtol=1e-15, atol=1e-15)
     np.testing.assert_allclose(r.mean, M_ISSUE[1], rtol=1e-15)
     assert all(np.trace(exact_ici_cov(covs, w)) > 4 for w in (1 - 2.0 ** -52, 1 - 1e-6, 0.5))
+
+
+def test_ici_weights_are_in_cis_sense():
+    """Fuzz G4: ICI returned node a with weights (0, 1), labelled CI weights, where fo.ci
+    gives (1, 0): its w multiplies P_a in G = w P_a + (1 - w) P_b, so w = 0 gives node a."""
+    covs = np.stack([0.1 * np.eye(2), np.eye(2)])
+    means = np.array([[1.0, 2.0], [3.0, 4.0]])
+    r, ci = fo.fuse(means, covs, method="ici"), fo.ci(means[0], covs[0], means[1], covs[1])
+    np.testing.assert_array_equal(r.weights, [1.0, 0.0])
+    np.testing.assert_array_equal(ci.weights, [1.0, 0.0])
+    np.testing.assert_array_equal(r.mean, means[0])
+    np.testing.assert_allclose(r.cov, covs[0], rtol=1e-15)
 
 
 def test_ici_hand_computed():
