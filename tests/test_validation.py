@@ -58,7 +58,8 @@ CASES = [
      r"m_a and m_b are empty \(n = 0\)"),
     ("not numbers", lambda: fo.bci([["a", "b"]], COVS[:1, :2, :2]), r"means must be an array"),
     ("gap weights", lambda: fo.optimality_gap(COVS, [0.5, 0.5], "trace"), r"weights must have"),
-    ("gap simplex", lambda: fo.optimality_gap(COVS, [0.5, 0.5, 0.5, -0.5]), r"weights must be >= 0, got -0\.5 at node 3"),
+    ("gap simplex", lambda: fo.optimality_gap(COVS, [0.5, 0.5, 0.5, -0.5]),
+     r"weights must be >= 0, got -0\.5 at node 3"),
 ]
 
 
