@@ -295,13 +295,13 @@ def compile_part(part: str) -> float:
     for the array types the library calls it with; returns the seconds it took. "solve":
     checks, factors and the weight solvers; "assemble": the fused estimates and their
     certificate; "conic": the scaled data a conic backend receives and the certificates of
-    its polish; "rules": the fixed-weight rules' (fast-ci, ifci) and `optimality_gap`'s
-    kernels; "fuse": `fuse_exact`, the whole exact path, from the kernels of "solve" and
-    "assemble"; "network": the checks of an Estimates, MBCI's detection scales and the
-    association of estimates. On a cold cache, processes compiling a stage's parts at once
-    (KERNEL_STAGES) shorten the first fusion: about 70 s in one process, 33 s + 6 s on 2
-    cores (at f915525; `studies/runner.py` has its workers do it, as tests/conftest.py
-    does)."""
+    its polish; "rules": the fixed-weight rules' (fast-ci, ifci), ICI's search and
+    `optimality_gap`'s kernels; "fuse": `fuse_exact`, the whole exact path, from the
+    kernels of "solve" and "assemble"; "network": the checks of an Estimates, MBCI's
+    detection scales and the association of estimates. On a cold cache, processes
+    compiling a stage's parts at once (KERNEL_STAGES) shorten the first fusion: about 70 s
+    in one process, 33 s + 6 s on 2 cores (at f915525; `studies/runner.py` has its workers
+    do it, as tests/conftest.py does)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()
@@ -336,6 +336,7 @@ def _rule_kernels() -> None:
     means, covs = np.zeros((3, 2)), np.tile(np.eye(2), (3, 1, 1))
     for method in ("fast-ci", "ifci"):
         fuse(means, covs, method)
+    fuse(means[:2], covs[:2], "ici")
     optimality_gap(covs, np.full(3, 1 / 3))
 
 

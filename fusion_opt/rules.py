@@ -307,32 +307,63 @@ def _ici_weight(sigma, T, criterion):
     """(log(1 - w), log w) minimising ICI's tr P(w) or log det P(w), both convex in w: per
     axis, p(w) = mu (a + b mu) / (a + b mu^2) has p'' = 2 mu^2 (mu - 1)^2 (mu + 1) /
     (a + b mu^2)^3 >= 0, and (log p)'' >= 0 likewise. Bisection on the sign of
-    f'(w) in u = log(w / (1 - w)), down to the rounding of w and 1 - w."""
+    f'(w) in u = log(w / (1 - w)), down to the rounding of w and 1 - w (`_ici_bisect`)."""
     l = 2.0 * np.log(sigma)
     sign = np.sign(1.0 - sigma)  # sign of p'(w) per axis
     with np.errstate(divide="ignore"):  # sigma = 1: the axis does not depend on w
         log_gap = np.log(np.abs(1.0 - sigma)) + np.log1p(sigma)  # log |1 - mu|
     log_c = 2.0 * np.log(np.linalg.norm(T, axis=0))  # tr P = sum_k c_k p_k
+    return _ici_bisect(l, sign, log_gap, log_c, criterion == "trace")
 
-    def slope(la, lb):  # sign of f'(w), from each term's log size
-        g1, g2 = _ici_logs(la, lb, l)
-        if criterion == "trace":  # c mu^2 (1 - mu) / (a + b mu^2)^2
-            size = log_c + 2.0 * l + log_gap - 2.0 * g2
-        else:  # mu (1 - mu) / ((a + b mu)(a + b mu^2))
-            size = l + log_gap - g1 - g2
-        top = size.max()
-        return 0.0 if top == -np.inf else np.sum(sign * np.exp(size - top))
 
-    if slope(0.0, -np.inf) >= 0.0:  # w = 0
+@jit
+def _logaddexp(a: float, b: float) -> float:
+    """log(e^a + e^b), -inf terms allowed."""
+    if a == -np.inf:
+        return b
+    if b == -np.inf:
+        return a
+    return max(a, b) + np.log1p(np.exp(-abs(a - b)))
+
+
+@jit
+def _ici_slope(la: float, lb: float, l, sign, log_gap, log_c, trace: bool) -> float:
+    """The sign (and a positive multiple) of f'(w) at a = e^la, b = e^lb, from each axis'
+    term in logs: c mu^2 (1 - mu) / (a + b mu^2)^2 ("trace") or
+    mu (1 - mu) / ((a + b mu)(a + b mu^2)) ("logdet")."""
+    n = l.size
+    size = np.empty(n)
+    for k in range(n):
+        g2 = _logaddexp(la, lb + 2.0 * l[k])
+        if trace:
+            size[k] = log_c[k] + 2.0 * l[k] + log_gap[k] - 2.0 * g2
+        else:
+            size[k] = l[k] + log_gap[k] - _logaddexp(la, lb + l[k]) - g2
+    top = size.max()
+    if top == -np.inf:
+        return 0.0
+    total = 0.0
+    for k in range(n):
+        total += sign[k] * np.exp(size[k] - top)
+    return total
+
+
+@jit
+def _ici_bisect(l, sign, log_gap, log_c, trace: bool):
+    """`_ici_weight`'s search, compiled (a bisection of about 60 steps: 0.7 ms a pair in
+    numpy calls, to a batch of 200,000 pairs 145 s): the end w = 0 or 1 where f' does not
+    change sign, else bisection in u on [-_U_MAX, _U_MAX]."""
+    if _ici_slope(0.0, -np.inf, l, sign, log_gap, log_c, trace) >= 0.0:  # w = 0
         return 0.0, -np.inf
-    if slope(-np.inf, 0.0) <= 0.0:  # w = 1
+    if _ici_slope(-np.inf, 0.0, l, sign, log_gap, log_c, trace) <= 0.0:  # w = 1
         return -np.inf, 0.0
     lo, hi = -_U_MAX, _U_MAX
     while True:
         u = 0.5 * (lo + hi)
-        if hi - lo <= _EPS or u in (lo, hi):
-            return -np.logaddexp(0.0, u), -np.logaddexp(0.0, -u)
-        if slope(-np.logaddexp(0.0, u), -np.logaddexp(0.0, -u)) > 0.0:
+        la, lb = -_logaddexp(0.0, u), -_logaddexp(0.0, -u)
+        if hi - lo <= _EPS or u == lo or u == hi:
+            return la, lb
+        if _ici_slope(la, lb, l, sign, log_gap, log_c, trace) > 0.0:
             hi = u
         else:
             lo = u

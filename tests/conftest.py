@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import sys
 
 # The tests run in two processes (-n 2 in pyproject.toml) on a 2-core machine: OpenBLAS's
 # own threads in each then contend for the same cores, and a small BLAS call (a 4 x 4
 # triangular solve, scipy's expm of a 4 x 4) waits for a time slice: 6-15 ms instead of
 # microseconds when the machine is busy; test_studies_config.py and test_study_network.py
 # took 54-163 s against 19-23 s with one thread each. Set before numpy is first imported
-# (the xdist workers inherit it); a user's own setting wins. studies/__main__.py does the
-# same for a study's processes.
-assert "numpy" not in sys.modules, "tests/conftest.py must run before numpy is imported"
+# (pytest loads this file first; the xdist workers inherit it); a user's own setting
+# wins. studies/__main__.py does the same for a study's processes.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
