@@ -132,6 +132,11 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[scaling]\nN = [8]\n", "scaling.N must hold two or more distinct sizes (the "
      "log-log slope is fitted to them), got [8]"),
     ("nnode", "[scaling]\nn = [4, 4]\n", "scaling.n must hold two or more distinct sizes"),
+    # fuzz F11: each passed the check and failed a run at its filters' second or third
+    # step, whose covariance float64 could not hold positive definite
+    ("table1", "[scenario]\nprior_cov = 1e20\n", "table1: [scenario] prior_cov / r = 2e+21: "
+     "after a first update the filters' covariance has about that condition"),
+    ("table2", "[scenario]\nprior_cov = 1e15\n", "[scenario] prior_cov / meas_sd^2 = 4e+17"),
     # fuzz F5: each passed the check and failed run 0 (OverflowError, scipy's "array must
     # not contain infs", "Python int too large to convert to C int")
     ("stonesoup", "[metrics]\norder = 1e300\n", "metrics.cutoff ^ metrics.order must lie"),

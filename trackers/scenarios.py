@@ -126,6 +126,9 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
                                f"about {worst:.3g} rad/s: {exc}") from None
 
 
+_EPS = np.finfo(np.float64).eps
+
+
 def _check_shared(cfg) -> None:
     """The fields both scenario configurations have: time grid, motion, detection, filter;
     a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
@@ -150,6 +153,19 @@ def _check_shared(cfg) -> None:
     _checks.positive("prior_cov", cfg.prior_cov)
     _checks.probability("resample_threshold", cfg.resample_threshold)
     _checks.fits(f"n_steps = {cfg.n_steps}", 8.0 * cfg.n_steps * (5 + 12 * len(cfg.p_detect)))
+
+
+def _check_prior_ratio(prior_cov: float, r: float, r_name: str) -> None:
+    """The filters' first update leaves positions at about the measurement variance r and
+    velocities at prior_cov: a covariance of condition about prior_cov / r, which float64
+    holds positive definite only up to about 1/eps (a Table 1 run at 2e19 failed at its
+    second step, one at 2e18 ran)."""
+    ratio = prior_cov / r
+    if not ratio <= 1.0 / _EPS:
+        raise FusionInputError(
+            f"prior_cov / {r_name} = {ratio:.3g}: after a first update the filters' "
+            f"covariance has about that condition (positions near {r_name}, velocities "
+            f"near prior_cov), beyond the {1.0 / _EPS:.2g} float64 holds positive definite")
 
 
 def _check_region(name, region):
@@ -214,6 +230,7 @@ class Table1Config:
         _check_windows("turn_windows", self.turn_windows)
         _checks.probability("clutter_fraction", self.clutter_fraction)
         self.filter_model()  # dt, q and r give a model float64 holds
+        _check_prior_ratio(self.prior_cov, self.r, "r")
         _check_rates("turn_windows", [w[2] for w in self.turn_windows], self.q, self.dt,
                      self.turn_noise_sd)
 
@@ -362,6 +379,7 @@ class Table2Config:
         _checks.positive("lifetime_shape", self.lifetime_shape)
         _checks.positive("lifetime_scale", self.lifetime_scale)
         self.filter_model()  # dt, q and meas_sd give a model float64 holds
+        _check_prior_ratio(self.prior_cov, self.meas_sd**2, "meas_sd^2")
         for i, tg in enumerate(self.targets):
             _check_rates(f"targets[{i}]", [tg.turn_rate, *(w[2] for w in tg.turn_windows)],
                          self.q, self.dt, self.turn_noise_sd)
