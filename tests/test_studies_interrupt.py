@@ -21,11 +21,6 @@ from studies import table1
 from studies.__main__ import main
 from studies.store import Store
 
-# One worker runs this module (`--dist loadgroup` in pyproject.toml): its module fixture
-# runs the uninterrupted study the others resume to,
-# once, where with the tests spread over both workers each ran it.
-pytestmark = pytest.mark.xdist_group("test_studies_interrupt")
-
 ROOT = Path(__file__).parents[1]
 RUNS = 6
 # about 0.2 s per run, so that a signal lands inside a run

@@ -13,11 +13,6 @@ import pytest
 from studies.__main__ import main
 from studies.store import Store, StoreError
 
-# One worker runs this module (`--dist loadgroup` in pyproject.toml): its module fixture
-# runs a tiny backends benchmark and network study,
-# once, where with the tests spread over both workers each ran it.
-pytestmark = pytest.mark.xdist_group("test_studies_store")
-
 CONFIG = {"runs": 3, "seed": 1, "backend": "newton", "scenario": {"n_steps": 5}}
 
 

@@ -19,11 +19,6 @@ from studies import config as configs  # noqa: E402
 from studies import stonesoup as study  # noqa: E402
 from studies.__main__ import main  # noqa: E402
 
-# One worker runs this module (`--dist loadgroup` in pyproject.toml): its module fixture
-# runs the tiny studies its tests read,
-# once, where with the tests spread over both workers each ran it.
-pytestmark = pytest.mark.xdist_group("test_study_stonesoup")
-
 SHORT = {"steps": 20}
 TINY = """
 runs = 2
