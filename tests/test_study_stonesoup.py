@@ -302,3 +302,14 @@ def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
     assert main(["report", "stonesoup", "--out", str(tmp_path)]) == 0
     assert (folder / "stonesoup.md").read_text() == table
     assert (folder / "stonesoup_scenario.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_a_rule_that_fuses_nothing_is_a_dash_not_a_keyerror(tmp_path):
+    """Fuzz H1: with one scan (or a tight threshold) no group forms, no rule fuses, and the
+    report ended in a KeyError traceback ('us_per_fusion'); its time, ANEES and band are
+    '-' now, as for any score a run does not have."""
+    folder = tiny_run(tmp_path, "stonesoup", "runs = 2\n[scenario]\nsteps = 1\n", OUTPUTS)
+    rows = [line for line in (folder / "stonesoup.md").read_text().splitlines()
+            if line.startswith("| BCI trace | ")]
+    assert rows and rows[0].endswith("| - | - | - | - |"), rows
