@@ -137,6 +137,11 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[scenario]\nprior_cov = 1e20\n", "table1: [scenario] prior_cov / r = 2e+21: "
      "after a first update the filters' covariance has about that condition"),
     ("table2", "[scenario]\nprior_cov = 1e15\n", "[scenario] prior_cov / meas_sd^2 = 4e+17"),
+    # fuzz H3 / H4: below 1/eps but above what the fusion accepts, a run failed there
+    ("table1", "[scenario]\nr = 1e-14\nprior_cov = 1.0\n", "prior_cov / r = 1e+14: after a "
+     "first update the filters' covariance has about that condition (positions near r, "
+     "velocities near prior_cov), beyond the 7e+13 a fusion accepts"),
+    ("table2", "[scenario]\nmeas_sd = 1e-7\nprior_cov = 1.0\n", "prior_cov / meas_sd^2 = 1e+14"),
     # fuzz F5: each passed the check and failed run 0 (OverflowError, scipy's "array must
     # not contain infs", "Python int too large to convert to C int")
     ("stonesoup", "[metrics]\norder = 1e300\n", "metrics.cutoff ^ metrics.order must lie"),

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion_opt import FusionInputError
+from fusion_opt.prepare import MAX_CONDITION
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -126,9 +127,6 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
                                f"about {worst:.3g} rad/s: {exc}") from None
 
 
-_EPS = np.finfo(np.float64).eps
-
-
 def _check_shared(cfg) -> None:
     """The fields both scenario configurations have: time grid, motion, detection, filter;
     a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
@@ -157,15 +155,16 @@ def _check_shared(cfg) -> None:
 
 def _check_prior_ratio(prior_cov: float, r: float, r_name: str) -> None:
     """The filters' first update leaves positions at about the measurement variance r and
-    velocities at prior_cov: a covariance of condition about prior_cov / r, which float64
-    holds positive definite only up to about 1/eps (a Table 1 run at 2e19 failed at its
-    second step, one at 2e18 ran)."""
+    velocities at prior_cov: a covariance of condition about prior_cov / r, which the
+    fusion refuses above MAX_CONDITION (7e13; float64 holds it positive definite only up
+    to about 1/eps: a Table 1 run at 2e19 failed at a filter's second step, and runs at
+    1e14 at the fusion, fuzz H3 / H4)."""
     ratio = prior_cov / r
-    if not ratio <= 1.0 / _EPS:
+    if not ratio <= MAX_CONDITION:
         raise FusionInputError(
             f"prior_cov / {r_name} = {ratio:.3g}: after a first update the filters' "
             f"covariance has about that condition (positions near {r_name}, velocities "
-            f"near prior_cov), beyond the {1.0 / _EPS:.2g} float64 holds positive definite")
+            f"near prior_cov), beyond the {MAX_CONDITION:.2g} a fusion accepts")
 
 
 def _check_region(name, region):
