@@ -114,8 +114,9 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
     try:
         a = real_array(ids, "ids")
     except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
-        if isinstance(ids, list | tuple) and all(type(v) is int for v in ids):
-            _refuse_range(ids)  # Python integers beyond int64 make an object array
+        if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
+                _beyond_int64(ids) is not None:  # beyond int64 they make an object array
+            _refuse_range(ids)
         raise FusionInputError(f"ids must be integers (map other track names to integers): "
                                f"{exc}") from None
     if np.asarray(ids).dtype.kind in "iu":
@@ -140,11 +141,15 @@ def _fit_int64(a: np.ndarray) -> bool:
     return bool(a.max() <= info.max and a.min() >= info.min)
 
 
+def _beyond_int64(values):
+    """The first of values (Python numbers) outside int64, or None."""
+    return next((v for v in values if not -(2**63) <= v < 2**63), None)
+
+
 def _refuse_range(values) -> None:
     """Raises for the first of values (Python numbers) outside int64."""
-    bad = next(v for v in values if not -(2**63) <= v < 2**63)
     raise FusionInputError(f"ids must fit in a signed 64-bit integer (-2^63 to 2^63 - 1), "
-                           f"got {bad!r}")
+                           f"got {_beyond_int64(values)!r}")
 
 
 def check_time(time) -> float | None:

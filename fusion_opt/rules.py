@@ -317,16 +317,6 @@ def _ici_weight(sigma, T, criterion):
 
 
 @jit
-def _logaddexp(a: float, b: float) -> float:
-    """log(e^a + e^b), -inf terms allowed."""
-    if a == -np.inf:
-        return b
-    if b == -np.inf:
-        return a
-    return max(a, b) + np.log1p(np.exp(-abs(a - b)))
-
-
-@jit
 def _ici_slope(la: float, lb: float, l, sign, log_gap, log_c, trace: bool) -> float:
     """The sign (and a positive multiple) of f'(w) at a = e^la, b = e^lb, from each axis'
     term in logs: c mu^2 (1 - mu) / (a + b mu^2)^2 ("trace") or
@@ -334,11 +324,11 @@ def _ici_slope(la: float, lb: float, l, sign, log_gap, log_c, trace: bool) -> fl
     n = l.size
     size = np.empty(n)
     for k in range(n):
-        g2 = _logaddexp(la, lb + 2.0 * l[k])
+        g2 = np.logaddexp(la, lb + 2.0 * l[k])
         if trace:
             size[k] = log_c[k] + 2.0 * l[k] + log_gap[k] - 2.0 * g2
         else:
-            size[k] = l[k] + log_gap[k] - _logaddexp(la, lb + l[k]) - g2
+            size[k] = l[k] + log_gap[k] - np.logaddexp(la, lb + l[k]) - g2
     top = size.max()
     if top == -np.inf:
         return 0.0
@@ -360,7 +350,7 @@ def _ici_bisect(l, sign, log_gap, log_c, trace: bool):
     lo, hi = -_U_MAX, _U_MAX
     while True:
         u = 0.5 * (lo + hi)
-        la, lb = -_logaddexp(0.0, u), -_logaddexp(0.0, -u)
+        la, lb = -np.logaddexp(0.0, u), -np.logaddexp(0.0, -u)
         if hi - lo <= _EPS or u == lo or u == hi:
             return la, lb
         if _ici_slope(la, lb, l, sign, log_gap, log_c, trace) > 0.0:

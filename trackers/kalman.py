@@ -13,9 +13,10 @@ P is updated in Joseph's form (Bucy & Joseph 1968), a sum of two positive semide
 terms, not as P- - K S K^T: where P- is far above R (a vague prior, a long run of misses)
 that difference cancels to rounding; at P- = 1e16 R it left P indefinite and a Table 1 run
 with prior_cov = 1e16 failed at its second step. Joseph's form matches the exact update
-there (tests/test_trackers_kalman.py) for two more small products per update. Beyond
-P- = R / eps the updated P has a condition float64 cannot hold positive definite at all
-(velocities at P-, positions at R), which the scenario configurations refuse.
+there (tests/test_trackers_kalman.py) for two more small products per update. The updated
+P then has a condition of about P- / R (velocities at P-, positions at R), which float64
+holds positive definite only up to about 1/eps and a fusion accepts up to 7e13: the
+scenario configurations refuse a prior beyond that (scenarios._check_prior_ratio).
 
 The step functions take means (..., n) and covariances (..., n, n) with any leading batch
 axes (e.g. one per particle), so a particle filter calls them once for all particles.
