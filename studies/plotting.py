@@ -70,8 +70,9 @@ def path(ax, xy, color="black", arrows: int = 3, at=None, **style) -> None:
         return
     ax.plot(xy[:, 0], xy[:, 1], color=color, **({"lw": 1.0, "zorder": 3} | style))
     ax.plot(*xy[0], **(START | {"mec": color, "zorder": 4}))
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
-    if arc[-1] <= 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # a path beyond 1e308 gets no arrows
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    if not 0 < arc[-1] < np.inf:
         return
     for share in (np.arange(arrows) + 0.5) / arrows if at is None else at:
         at = share * arc[-1]

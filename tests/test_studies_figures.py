@@ -94,3 +94,17 @@ def test_bands_are_in_the_legend(drawn):
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert any("95% band of the ANEES" in t for t in labels)
     assert any("95% interval of the mean" in t for t in labels)
+
+
+@pytest.mark.parametrize("xy, arrows", [([[1e300, 1e300], [1.5e300, 1.7e300]], 1),
+                                        ([[0.0, 0.0], [1e308, 0.0], [0.0, 1.0], [1e308, 1.0]], 0)])
+def test_a_path_far_out_is_drawn_and_saved(tmp_path, xy, arrows):
+    """A target configured at 1e300 (fuzz H17): its path's arc length once overflowed in
+    norm's squares, the arrow's position became NaN and savefig ended in matplotlib's
+    StopIteration. Now the arc is summed with hypot; a path whose length exceeds the floats
+    (three legs of 1e308) is drawn without arrows."""
+    fig, (ax,) = plotting.panels(1, 1, width=3, height=3)
+    plotting.path(ax, xy, at=(0.3,))
+    assert len(ax.texts) == arrows
+    plotting.save(fig, tmp_path / "far.png")
+    assert (tmp_path / "far.png").stat().st_size > 0
