@@ -105,6 +105,7 @@ import fusion_opt as fo
 from fusion_opt import stonesoup as fs
 from fusion_opt.association import METHODS as ASSOCIATIONS
 from trackers import metrics
+from trackers.scenarios import check_reach
 
 from . import config as configs
 from . import plotting, stats
@@ -175,6 +176,12 @@ class Scenario:
         if len(self.region) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in self.region):
             raise ValueError(f"region must be [[x0, x1], [y0, y1]] with x0 < x1 and y0 < y1, "
                              f"got {self.region!r}")
+        sd = min(min(v) for v in self.noise_sd)
+        for i, (x, vx, y, vy) in enumerate(self.targets):
+            if not np.isfinite([x, vx, y, vy]).all():
+                raise ValueError(f"targets[{i}] must be finite, got {self.targets[i]!r}")
+            check_reach(f"targets[{i}]", [x, y], float(np.hypot(vx, vy)), self.steps * self.dt,
+                        sd, "the smallest noise_sd")
 
     @property
     def sensors(self) -> int:

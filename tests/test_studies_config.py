@@ -151,6 +151,19 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("stonesoup", "[scenario]\ndt = 1e300\n", "steps x dt must be at most 1e10 s"),
     ("stonesoup", "[scenario]\nclutter_rate = [1e12, 1.0, 1.0]\n",
      "scenario.clutter_rate and steps: about"),
+    # fuzz H14, H17, H13: targets where float64's rounding of positions exceeds the noise
+    # (a fusion met covariances not positive definite; a figure ended in StopIteration)
+    ("table1", "[scenario]\nx0 = [0.0, 1e30, 0.0, 0.0]\n",
+     "[scenario] x0: the target reaches 1e+30 m from the origin, 4.47e+30 times sqrt(r)"),
+    ("table1", "[scenario]\nx0 = [0.0, 0.0, 1e12, 0.0]\n", "x0: the target reaches 2.4e+13 m"),
+    ("table2", "[scenario]\ntargets = [{x0 = [1e300, 1e300, 1e300, 1e300], birth = 0.0, "
+     "death = 1.0}]\n", "[scenario] targets[0]: the target reaches 2.41e+300 m"),
+    ("network", "[scenario]\nstart_radius = 1e12\n", "start_radius: the target reaches 3e+12"),
+    ("stonesoup", "[scenario]\ntargets = [[1e200, 0.0, 0.0, 0.0]]\n",
+     "targets[0]: the target reaches 1e+200 m from the origin, 1e+200 times the smallest "
+     "noise_sd = 1"),
+    ("stonesoup", "[scenario]\ntargets = [[nan, 0.0, 0.0, 0.0]]\n",
+     "scenario.targets[0][0] must be a finite number, got nan"),
 ]
 
 

@@ -9,7 +9,7 @@ from scipy.stats import binomtest
 
 from fusion_opt import FusionInputError
 from trackers import scenarios
-from trackers.scenarios import CLUTTER
+from trackers.scenarios import CLUTTER, MAX_REACH, Table1Config, check_reach, simulate_table1
 
 
 def test_table1_defaults_are_design_values():
@@ -257,3 +257,17 @@ def test_configs_whose_runs_float64_or_memory_cannot_hold_are_refused(make, matc
     simulated; now the configuration is refused before anything is allocated."""
     with pytest.raises(FusionInputError, match=match):
         make()
+
+
+def test_reach_is_accepted_up_to_the_bound_and_refused_past_it():
+    """check_reach: max|position| + speed x duration against MAX_REACH sds; a Table 1
+    target just inside runs its scenario with finite measurements."""
+    sd = 0.5
+    check_reach("p", [MAX_REACH * sd - 30.0, 0.0], 2.0, 15.0, sd, "sd")
+    with pytest.raises(FusionInputError, match=r"p: the target reaches 5e\+11 m"):
+        check_reach("p", [MAX_REACH * sd - 30.0, 0.0], 2.0, 15.5, sd, "sd")
+    with pytest.raises(FusionInputError, match="p: the target reaches inf m"):
+        check_reach("p", [1e308, 0.0], 1e308, 10.0, sd, "sd")
+    cfg = Table1Config(x0=(1e11, -0.2, 1.0, 0.0), n_steps=20)
+    data = simulate_table1(cfg, np.random.default_rng(0))
+    assert all(np.isfinite(node.values).all() for node in data.nodes)

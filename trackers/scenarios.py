@@ -26,6 +26,8 @@ from fusion_opt.prepare import MAX_CONDITION
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
+EPS = float(np.finfo(float).eps)
+
 #: Origin label of a clutter measurement.
 CLUTTER = -1
 
@@ -167,6 +169,28 @@ def _check_prior_ratio(prior_cov: float, r: float, r_name: str) -> None:
             f"near prior_cov), beyond the {MAX_CONDITION:.2g} a fusion accepts")
 
 
+MAX_REACH = 1e12  # positions are resolved to within eps x 1e12 = 2.2e-4 measurement sd
+
+
+def check_reach(name: str, position, speed: float, duration: float, sd: float,
+                sd_name: str) -> None:
+    """Refuse a target whose path leaves the coordinates float64 resolves at the noise:
+    from position (2,) at speed (m/s, which turns keep) for duration (s) it stays within
+    reach = max|position| + speed x duration, where float64 rounds positions to eps x
+    reach. Accepted up to MAX_REACH measurement sds, where that rounding is 2.2e-4 sd (a
+    Table 1 target at 1e12 m, 4.5e12 sds, gave the scores of one at 1e10 m to 3-4 digits;
+    at 1e30 m the fusion met covariances that were not positive definite, at 1e300 m a
+    figure overflowed: fuzz H14, H17)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        reach = float(np.max(np.abs(position))) + speed * max(duration, 0.0)
+    if not reach <= MAX_REACH * sd:
+        raise FusionInputError(
+            f"{name}: the target reaches {reach:.3g} m from the origin, {reach / sd:.3g} "
+            f"times {sd_name} = {sd:.3g}, where float64 rounds positions to "
+            f"{reach * EPS:.3g} m; the scenarios accept up to {MAX_REACH:.0e} sds, where the "
+            f"rounding is {MAX_REACH * EPS:.1e} sd (put the origin near the targets)")
+
+
 def _check_region(name, region):
     r = _checks.finite_array(name, region, shape=(2, 2))
     if np.any(r[:, 1] <= r[:, 0]):
@@ -225,8 +249,10 @@ class Table1Config:
     def __post_init__(self) -> None:
         _check_shared(self)
         _checks.positive("r", self.r)
-        _checks.finite_array("x0", self.x0, shape=(4,))
+        x0 = _checks.finite_array("x0", self.x0, shape=(4,))
         _check_windows("turn_windows", self.turn_windows)
+        check_reach("x0", x0[:2], float(np.hypot(*x0[2:])), self.n_steps * self.dt,
+                    float(np.sqrt(self.r)), "sqrt(r)")
         _checks.probability("clutter_fraction", self.clutter_fraction)
         self.filter_model()  # dt, q and r give a model float64 holds
         _check_prior_ratio(self.prior_cov, self.r, "r")
@@ -382,6 +408,9 @@ class Table2Config:
         for i, tg in enumerate(self.targets):
             _check_rates(f"targets[{i}]", [tg.turn_rate, *(w[2] for w in tg.turn_windows)],
                          self.q, self.dt, self.turn_noise_sd)
+            check_reach(f"targets[{i}]", tg.x0[:2], float(np.hypot(*tg.x0[2:])),
+                        min(tg.death, self.n_steps * self.dt) - tg.birth, self.meas_sd,
+                        "meas_sd")
         _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
 
     def _run_bytes(self) -> float:
@@ -536,6 +565,8 @@ class CrossingConfig:
             for i, v in enumerate(values.tolist()):
                 check(f"{name}[{i}]", v)
         _check_rates("turn_rates", self.turn_rates, self.q, self.dt)
+        check_reach("start_radius", [self.start_radius], self.speed,
+                    2 * self.start_radius / self.speed, self.meas_sd, "meas_sd")
         if len(self.clutter_rate) != len(self.p_detect):
             raise FusionInputError(f"clutter_rate must give one rate per node "
                                    f"({len(self.p_detect)}, as p_detect), got "
