@@ -115,11 +115,56 @@ def check(config: dict) -> None:
     if dyn["burn_in"] >= dyn["steps"]:
         raise configs.ConfigError(f"dynamic.burn_in must be below dynamic.steps "
                                   f"({dyn['steps']}), got {dyn['burn_in']}")
+    _check_dynamic_model(dyn)
     for i, N in enumerate(dyn["N"]):
         _dynamic_fits(f"dynamic.N[{i}] = {N} with dynamic.steps = {dyn['steps']}", dyn, N,
                       backend)
     configs.backend("backend", backend, nodes=max(nodes + list(dyn["N"])))
     _check_scaling(config["scaling"])
+
+
+def _check_dynamic_model(dyn: dict) -> None:
+    """The dynamic case's model, run on its covariances alone (no data, a few ms): the
+    step's Q must be positive definite in float64; two nodes that detect at every step (the
+    best case for telling their errors apart) must each have a covariance a fusion accepts,
+    and so must a node never detecting, after `steps`; and the two must give joint
+    covariances that "known cross" fuses after burn_in. A run where nodes miss can still
+    fail later (its message says so); these fail at every seed (fuzz H5, H8, H9)."""
+    where = (f"dynamic.dt = {dyn['dt']:.3g}, dynamic.q = {dyn['q']:.3g}, dynamic.r = "
+             f"{dyn['r']:.3g}")
+    try:
+        model = dynamic_model(dyn)
+    except fo.FusionInputError as exc:
+        raise configs.ConfigError(f"{where}: {exc}") from None
+    try:
+        np.linalg.cholesky(model.Q)
+    except np.linalg.LinAlgError:
+        raise configs.ConfigError(f"{where}: the step's process noise covariance Q is not "
+                                  f"positive definite in float64 (its smallest entry, "
+                                  f"q dt^3 / 3, is {model.Q[0, 0]:.3g})") from None
+    m0, P0 = dynamic_prior(model.n)
+    C, joint = np.broadcast_to(P0, (2, 2, model.n, model.n)), []
+    never = P0
+    for t in range(dyn["steps"]):
+        C = kalman.cross_covariance_step(C, np.ones(2, dtype=bool), model)[0]
+        never = kalman.predict(m0, never, model.A, model.Q)[1]
+        if t >= dyn["burn_in"]:
+            joint.append(C)
+    try:
+        fo.fuse(np.zeros((2, model.n)), np.array([C[0, 0], never]), method="ci")
+    except fo.FusionInputError as exc:
+        raise configs.ConfigError(f"{where}, dynamic.steps = {dyn['steps']}: the covariance "
+                                  f"of a node detecting at every step or of one never "
+                                  f"detecting is not one a fusion accepts: {exc}") from None
+    joint = np.array(joint)
+    covs = np.diagonal(joint, axis1=1, axis2=2).transpose(0, 3, 1, 2)
+    try:
+        fo.fuse_batch(np.zeros(covs.shape[:-1]), covs, method="known-cross", cross=joint)
+    except fo.FusionInputError as exc:
+        raise configs.ConfigError(
+            f"{where}, dynamic.burn_in = {dyn['burn_in']}: even two nodes that detect at "
+            f"every step keep linearly dependent errors (the prior they share, e.g. its "
+            f"velocity, is not yet measured away): {exc}") from None
 
 
 def _check_scaling(sc) -> None:
@@ -388,7 +433,7 @@ def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
         cross.append(C)
         for name, centre in centres.items():
             t0 = time.perf_counter()
-            fused[name].append(_one_track(centre.step(reports), name))
+            fused[name].append(_one_track(centre.step(reports), name, reports, dcfg))
             wall[name] += time.perf_counter() - t0
     truth, steps = sim["truth"][dcfg["burn_in"]:], len(means)
     out = {name: _dynamic_row([e.means[0] for e in est], [e.covs[0] for e in est], truth,
@@ -411,10 +456,17 @@ def dynamic_scores(dcfg: dict, N: int, rng, backend: str) -> dict:
     return out
 
 
-def _one_track(fused: fo.Estimates, name: str) -> fo.Estimates:
+def _one_track(fused: fo.Estimates, name: str, reports: dict, dcfg: dict) -> fo.Estimates:
+    """The one track the centre `name` made of the N reports, or an error saying how far
+    apart the reports were (the threshold must exceed it)."""
     if len(fused) != 1:
-        raise RuntimeError(f"the fusion centre {name!r} did not join the N estimates "
-                           f"of the one target (dynamic.threshold too small?)")
+        xy = np.array([r.means[0][:2] for r in reports.values()])
+        spread = np.max(np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)))
+        raise RuntimeError(
+            f"the fusion centre {name!r} made {len(fused)} tracks of the N = {len(xy)} "
+            f"estimates of the one target: their positions lie up to {spread:.3g} m apart, "
+            f"beyond dynamic.threshold = {dcfg['threshold']:.3g} (the filters' errors grow "
+            f"with dynamic.dt and dynamic.q: raise the threshold above them)")
     return fused
 
 

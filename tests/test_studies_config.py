@@ -164,6 +164,18 @@ CASES = [  # (study, TOML file, what the one line must say)
      "noise_sd = 1"),
     ("stonesoup", "[scenario]\ntargets = [[nan, 0.0, 0.0, 0.0]]\n",
      "scenario.targets[0][0] must be a finite number, got nan"),
+    # fuzz H5, H8, H9 and q = 1e30, dt = 1e30: the dynamic case's model failed at every
+    # seed mid-run (H5 as a bare "LinAlgError: Matrix is not positive definite")
+    ("nnode", "[dynamic]\ndt = 1e-300\n", "dynamic.dt = 1e-300, dynamic.q = 0.1, dynamic.r = "
+     "0.05: the step's process noise covariance Q is not positive definite in float64 (its "
+     "smallest entry, q dt^3 / 3, is 0)"),
+    ("nnode", "[dynamic]\ndt = 1e30\n", "dynamic.r = 0.05: dt = 1e+30 is too long a step"),
+    ("nnode", "[dynamic]\nr = 1e-30\n", "dynamic.r = 1e-30, dynamic.steps = 200: the "
+     "covariance of a node detecting at every step or of one never detecting is not one a "
+     "fusion accepts: covs of node 0 is not positive definite"),
+    ("nnode", "[dynamic]\nq = 1e30\n", "dynamic.q = 1e+30, dynamic.r = 0.05, dynamic.steps"),
+    ("nnode", "[dynamic]\ndt = 1e-8\nburn_in = 0\n", "dynamic.burn_in = 0: even two nodes "
+     "that detect at every step keep linearly dependent errors"),
 ]
 
 

@@ -2,6 +2,7 @@
 show against the known truth."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -178,3 +179,16 @@ def test_a_burn_in_too_short_for_known_cross_says_so():
     with pytest.raises(fo.FusionInputError, match=r"not positive definite after "
                        r"dynamic.burn_in = 1 steps: until every node has made about two"):
         nnode.dynamic_scores(dcfg, 8, np.random.default_rng(0), "newton")
+
+
+def test_a_threshold_below_the_filters_spread_says_how_far_apart_they_were():
+    """dt = 1e4 s: the filters' position errors reach ~1e6 m, beyond the threshold of 1e6;
+    the centre made no track of the N reports and the error gives their spread (fuzz H10:
+    it asked "dynamic.threshold too small?" with no number)."""
+    dcfg = configs.load("nnode", quick=True)["dynamic"] | {"steps": 30, "burn_in": 10,
+                                                           "dt": 1e4}
+    with pytest.raises(RuntimeError, match=r"'naive' made 0 tracks of the N = 2 estimates of "
+                       r"the one target: their positions lie up to (\S+) m apart, beyond "
+                       r"dynamic.threshold = 1e\+06") as err:
+        nnode.dynamic_scores(dcfg, 2, np.random.default_rng(0), "newton")
+    assert float(re.search(r"up to (\S+) m", str(err.value)).group(1)) > 1e6
