@@ -34,6 +34,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter
 
 import fusion_opt as fo
+from fusion_opt.prepare import MAX_CONDITION
 from trackers import kalman, metrics
 from trackers.models import turn_model
 
@@ -202,7 +203,9 @@ def _static_scales(where: str, cfg: dict) -> None:
     """Refuse a static case whose covariances could leave 10^-SCALE_LOG10..10^SCALE_LOG10:
     eigenvalues 10^base_log10, grown by growth_true up to max_misses times (the case's
     products and eigendecompositions, of their squares, stay finite there; growth_true =
-    1e308 or base_log10 = [-320, -310] ended runs in numpy's LinAlgError)."""
+    1e308 or base_log10 = [-320, -310] ended runs in numpy's LinAlgError), or whose
+    eigenvalues span a condition the fusion refuses (growth scales a node's eigenvalues
+    alike, so its condition is at most 10^(high - low))."""
     low, high = cfg["base_log10"]
     top = high + cfg["max_misses"] * math.log10(cfg["growth_true"])
     if low < -SCALE_LOG10 or top > SCALE_LOG10:
@@ -210,6 +213,11 @@ def _static_scales(where: str, cfg: dict) -> None:
             f"{where}: the covariances reach 10^{low:g} to 10^{top:.4g} (base_log10, grown "
             f"by growth_true up to max_misses times), outside "
             f"10^-{SCALE_LOG10}..10^{SCALE_LOG10}")
+    if high - low > math.log10(MAX_CONDITION):
+        raise configs.ConfigError(
+            f"{where}: base_log10 spans {high - low:g} decades, so a node's covariance has a "
+            f"condition up to 10^{high - low:g}, beyond the {MAX_CONDITION:.2g} a fusion "
+            f"accepts (fuzz H2: [-100, 100] failed every run)")
 
 
 def _dynamic_fits(where: str, dyn: dict, N: int, backend: str) -> None:

@@ -176,6 +176,9 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[dynamic]\nq = 1e30\n", "dynamic.q = 1e+30, dynamic.r = 0.05, dynamic.steps"),
     ("nnode", "[dynamic]\ndt = 1e-8\nburn_in = 0\n", "dynamic.burn_in = 0: even two nodes "
      "that detect at every step keep linearly dependent errors"),
+    # fuzz H2: a span of eigenvalues beyond the fusion's condition limit failed every run
+    ("nnode", "[static]\nbase_log10 = [-7.0, 7.0]\n", "static: base_log10 spans 14 decades, "
+     "so a node's covariance has a condition up to 10^14, beyond the 7e+13 a fusion accepts"),
 ]
 
 
