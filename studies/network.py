@@ -84,7 +84,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 import fusion_opt as fo
-from trackers import metrics, rbmcda
+from trackers import kalman, metrics, rbmcda
 from trackers.scenarios import CrossingConfig, MultiTargetData, simulate_crossing
 
 from . import config as configs
@@ -160,6 +160,7 @@ def check(config: dict) -> None:
         raise configs.ConfigError("tracker.birth_prob and tracker.clutter_prior must not "
                                   "both be 0: nothing could explain a measurement")
     configs.construct("tracker", monitoring_node, config, sc, 1, np.random.default_rng(0))
+    _check_first_update(sc, tr)
     width = _check_network(config["network"], len(sc.p_detect))
     configs.backend("backend", config["backend"], nodes=width)
     _check_rules(config["rules"])
@@ -175,6 +176,24 @@ def check(config: dict) -> None:
                         ("benchmark.sources_at_targets and targets", bm["sources_at_targets"],
                          max(bm["targets"]))):
         configs.fits(where, 8.0 * 64 * S * J)  # synthetic_scene: G and covs (S, J, 4, 4)
+
+
+def _check_first_update(sc: CrossingConfig, tr: dict) -> None:
+    """A new track's covariance after its first measurement, from the tracker's prior and
+    scenario.meas_sd, must be one the fusion accepts: positions near min(prior_pos_var,
+    meas_sd^2), velocities at prior_vel_var (fuzz H7: prior_vel_var = 1e300 passed the
+    check and failed every run at its first fusion)."""
+    model = sc.filter_model()
+    P0 = np.diag([tr["prior_pos_var"]] * 2 + [tr["prior_vel_var"]] * 2)
+    P1 = kalman.update(np.zeros(4), P0, np.zeros(2), model.H, model.R)[1]
+    try:
+        fo.fuse(np.zeros((2, 4)), np.array([P1, P1]), method="ci")
+    except fo.FusionInputError as exc:
+        raise configs.ConfigError(
+            f"tracker.prior_pos_var = {tr['prior_pos_var']:.3g}, tracker.prior_vel_var = "
+            f"{tr['prior_vel_var']:.3g} with scenario.meas_sd = {sc.meas_sd:.3g}: a new "
+            f"track's covariance after its first update is not one a fusion accepts: {exc}"
+        ) from None
 
 
 def _check_network(net, monitors: int) -> int:

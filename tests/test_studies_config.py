@@ -176,6 +176,12 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[dynamic]\nq = 1e30\n", "dynamic.q = 1e+30, dynamic.r = 0.05, dynamic.steps"),
     ("nnode", "[dynamic]\ndt = 1e-8\nburn_in = 0\n", "dynamic.burn_in = 0: even two nodes "
      "that detect at every step keep linearly dependent errors"),
+    # fuzz H7: a tracker prior whose first update the fusion refuses failed every run there
+    ("network", "[tracker]\nprior_vel_var = 1e300\n", "tracker.prior_pos_var = 4, "
+     "tracker.prior_vel_var = 1e+300 with scenario.meas_sd = 0.05: a new track's covariance "
+     "after its first update is not one a fusion accepts: covs of node 0 is numerically "
+     "singular"),
+    ("network", "[tracker]\nprior_pos_var = 1e-300\n", "tracker.prior_pos_var = 1e-300"),
     # fuzz H2: a span of eigenvalues beyond the fusion's condition limit failed every run
     ("nnode", "[static]\nbase_log10 = [-7.0, 7.0]\n", "static: base_log10 spans 14 decades, "
      "so a node's covariance has a condition up to 10^14, beyond the 7e+13 a fusion accepts"),
