@@ -25,6 +25,8 @@ from collections.abc import Collection, Mapping
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 import fusion_opt as fo
 from fusion_opt.limits import fits as limits_fits
 from fusion_opt.validation import finite_real
@@ -294,6 +296,17 @@ def fusion_fits(where: str, n: int, N: int, backend: str) -> None:
     over = fo.core.over_memory(fo.core.request("bci", "trace", backend, {}), n, N)
     if over is not None:
         fits(where, over[1], over[2])
+
+
+def fusable(where: str, covs) -> None:
+    """Refuse covariances (k, n, n), k >= 2, that a fusion would refuse (not positive
+    definite, or beyond its condition limit: fusion_opt's own validation, by a naive fusion
+    of them), as a ConfigError: where names the fields that made them, then the reason."""
+    covs = np.asarray(covs, dtype=float)
+    try:
+        fo.fuse(np.zeros(covs.shape[:-1]), covs, method="naive")
+    except fo.FusionInputError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def construct(section: str, make, *args, **kwargs):

@@ -186,14 +186,10 @@ def _check_first_update(sc: CrossingConfig, tr: dict) -> None:
     model = sc.filter_model()
     P0 = np.diag([tr["prior_pos_var"]] * 2 + [tr["prior_vel_var"]] * 2)
     P1 = kalman.update(np.zeros(4), P0, np.zeros(2), model.H, model.R)[1]
-    try:
-        fo.fuse(np.zeros((2, 4)), np.array([P1, P1]), method="ci")
-    except fo.FusionInputError as exc:
-        raise configs.ConfigError(
-            f"tracker.prior_pos_var = {tr['prior_pos_var']:.3g}, tracker.prior_vel_var = "
-            f"{tr['prior_vel_var']:.3g} with scenario.meas_sd = {sc.meas_sd:.3g}: a new "
-            f"track's covariance after its first update is not one a fusion accepts: {exc}"
-        ) from None
+    configs.fusable(f"tracker.prior_pos_var = {tr['prior_pos_var']:.3g}, tracker.prior_vel_var"
+                    f" = {tr['prior_vel_var']:.3g} with scenario.meas_sd = {sc.meas_sd:.3g}: "
+                    f"a new track's covariance after its first update is not one a fusion "
+                    f"accepts", [P1, P1])
 
 
 def _check_network(net, monitors: int) -> int:

@@ -151,12 +151,9 @@ def _check_dynamic_model(dyn: dict) -> None:
         never = kalman.predict(m0, never, model.A, model.Q)[1]
         if t >= dyn["burn_in"]:
             joint.append(C)
-    try:
-        fo.fuse(np.zeros((2, model.n)), np.array([C[0, 0], never]), method="ci")
-    except fo.FusionInputError as exc:
-        raise configs.ConfigError(f"{where}, dynamic.steps = {dyn['steps']}: the covariance "
-                                  f"of a node detecting at every step or of one never "
-                                  f"detecting is not one a fusion accepts: {exc}") from None
+    configs.fusable(f"{where}, dynamic.steps = {dyn['steps']}: the covariance of a node "
+                    f"detecting at every step or of one never detecting is not one a fusion "
+                    f"accepts", [C[0, 0], never])
     joint = np.array(joint)
     covs = np.diagonal(joint, axis1=1, axis2=2).transpose(0, 3, 1, 2)
     try:

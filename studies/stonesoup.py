@@ -104,7 +104,7 @@ from stonesoup.updater.kalman import KalmanUpdater
 import fusion_opt as fo
 from fusion_opt import stonesoup as fs
 from fusion_opt.association import METHODS as ASSOCIATIONS
-from trackers import metrics
+from trackers import kalman, metrics
 from trackers.scenarios import check_reach
 
 from . import config as configs
@@ -215,6 +215,7 @@ def check(config: dict) -> None:
     configs.fits("scenario.clutter_rate and steps",
                  2048.0 * points + 16.0 * 4 * sc.steps * points)
     configs.backend("backend", config["backend"], nodes=sc.sensors)
+    _check_track_covariances(sc)
     _check_rules(config["rules"], sensor_names(sc))
     fusion = configs.fields(config["fusion"], "fusion", ("association", "threshold",
                                                          "min_sources", "growth", "baseline"))
@@ -233,6 +234,29 @@ def check(config: dict) -> None:
             f"{metrics['cutoff']!r} ^ {metrics['order']!r}")
     figure = configs.fields(config["figure"], "figure", ("rule",))
     configs.choice("figure.rule", figure["rule"], list(config["rules"]))
+
+
+def _check_track_covariances(sc: Scenario) -> None:
+    """A track's covariances at each sensor, exact (trackers.kalman, Joseph's form): started
+    at the measurement's covariance in position and the initiator's velocity variance 1,
+    updated at min_points - 1 more scans, then predicted through max_misses - 1 missed
+    ones (at max_misses it is deleted before it is reported); each must be one a fusion
+    accepts (fuzz H11: q = 1e30 gave velocity variances 1e29
+    times the positions' and failed every run at the fusion)."""
+    interval = timedelta(seconds=sc.dt)
+    A, Q = _cv(sc.q).matrix(time_interval=interval), _cv(sc.q).covar(time_interval=interval)
+    H = np.eye(NDIM)[list(POSITION)]
+    for s, sd in enumerate(sc.noise_sd):
+        R = np.diag(np.square(sd))
+        P, covs = H.T @ R @ H + np.diag([0.0, 1.0, 0.0, 1.0]), []
+        for k in range(sc.min_points - 1 + sc.max_misses - 1):
+            P = kalman.predict(np.zeros(NDIM), P, A, Q)[1]
+            if k < sc.min_points - 1:
+                P = kalman.update(np.zeros(NDIM), P, np.zeros(2), H, R)[1]
+            covs.append(P)
+        configs.fusable(f"scenario.q = {sc.q:.3g}, dt = {sc.dt:.3g}, noise_sd[{s}] = "
+                        f"{list(sd)}: a track's covariance over min_points updates and "
+                        f"max_misses predictions is not one a fusion accepts", covs)
 
 
 def _check_rules(rules, sensors: list[str]) -> None:
@@ -331,8 +355,11 @@ def _sensor(sc: Scenario, s: int, truth, seeds) -> SimpleDetectionSimulator:
 
 
 def _tracker(sc: Scenario, model: LinearGaussian) -> MultiTargetTracker:
-    """A Kalman multi-target tracker of one sensor (filters draw no random numbers)."""
-    predictor, updater = KalmanPredictor(_cv(sc.q)), KalmanUpdater(model)
+    """A Kalman multi-target tracker of one sensor (filters draw no random numbers), its
+    update in Joseph's form (as trackers.kalman's: P - K S K^T lost positive definiteness
+    at dt = 1e6, fuzz H16)."""
+    predictor = KalmanPredictor(_cv(sc.q))
+    updater = KalmanUpdater(model, use_joseph_cov=True)
     hypothesiser = DistanceHypothesiser(predictor, updater, Mahalanobis(),
                                         missed_distance=sc.gate)
     associator = GNNWith2DAssignment(hypothesiser)

@@ -176,6 +176,10 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[dynamic]\nq = 1e30\n", "dynamic.q = 1e+30, dynamic.r = 0.05, dynamic.steps"),
     ("nnode", "[dynamic]\ndt = 1e-8\nburn_in = 0\n", "dynamic.burn_in = 0: even two nodes "
      "that detect at every step keep linearly dependent errors"),
+    # fuzz H11: the trackers' covariances beyond the fusion's condition limit at every seed
+    ("stonesoup", "[scenario]\nq = 1e30\n", "scenario.q = 1e+30, dt = 1, noise_sd[0] = [1.0, "
+     "3.0]: a track's covariance over min_points updates and max_misses predictions is not "
+     "one a fusion accepts: covs of node 0 is numerically singular"),
     # fuzz H7: a tracker prior whose first update the fusion refuses failed every run there
     ("network", "[tracker]\nprior_vel_var = 1e300\n", "tracker.prior_pos_var = 4, "
      "tracker.prior_vel_var = 1e+300 with scenario.meas_sd = 0.05: a new track's covariance "

@@ -313,3 +313,11 @@ def test_a_rule_that_fuses_nothing_is_a_dash_not_a_keyerror(tmp_path):
     rows = [line for line in (folder / "stonesoup.md").read_text().splitlines()
             if line.startswith("| BCI trace | ")]
     assert rows and rows[0].endswith("| - | - | - | - |"), rows
+
+
+@pytest.mark.slow
+def test_long_steps_run_with_josephs_update(tmp_path):
+    """dt = 1e6 s: positions' variances reach 1e16 beside measurements' 1-9; Stone Soup's
+    KalmanUpdater in its default form (P - K S K^T) returned covariances that were not
+    positive definite and every run failed (fuzz H16); in Joseph's form they run."""
+    tiny_run(tmp_path, "stonesoup", "runs = 2\n[scenario]\nsteps = 15\ndt = 1e6\n", OUTPUTS)
