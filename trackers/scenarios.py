@@ -188,7 +188,8 @@ def check_reach(name: str, position, speed: float, duration: float, sd: float,
             f"{name}: the target reaches {reach:.3g} m from the origin, {reach / sd:.3g} "
             f"times {sd_name} = {sd:.3g}, where float64 rounds positions to "
             f"{reach * EPS:.3g} m; the scenarios accept up to {MAX_REACH:.0e} sds, where the "
-            f"rounding is {MAX_REACH * EPS:.1e} sd (put the origin near the targets)")
+            f"rounding is {MAX_REACH * EPS:.1e} sd (centre the coordinates on the targets; a "
+            f"noise sd below 1e-12 of the paths' extent is beyond float64)")
 
 
 def _check_region(name, region):
