@@ -252,13 +252,13 @@ class Table1Config:
         _checks.positive("r", self.r)
         x0 = _checks.finite_array("x0", self.x0, shape=(4,))
         _check_windows("turn_windows", self.turn_windows)
-        check_reach("x0", x0[:2], float(np.hypot(*x0[2:])), self.n_steps * self.dt,
-                    float(np.sqrt(self.r)), "sqrt(r)")
         _checks.probability("clutter_fraction", self.clutter_fraction)
         self.filter_model()  # dt, q and r give a model float64 holds
         _check_prior_ratio(self.prior_cov, self.r, "r")
         _check_rates("turn_windows", [w[2] for w in self.turn_windows], self.q, self.dt,
                      self.turn_noise_sd)
+        check_reach("x0", x0[:2], float(np.hypot(*x0[2:])), self.n_steps * self.dt,
+                    float(np.sqrt(self.r)), "sqrt(r)")
 
     def filter_model(self) -> LinearGaussian:
         """The filters' model: constant velocity (a = 0), Qc = q I2, R = r I2."""
@@ -409,10 +409,11 @@ class Table2Config:
         for i, tg in enumerate(self.targets):
             _check_rates(f"targets[{i}]", [tg.turn_rate, *(w[2] for w in tg.turn_windows)],
                          self.q, self.dt, self.turn_noise_sd)
+        _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
+        for i, tg in enumerate(self.targets):
             check_reach(f"targets[{i}]", tg.x0[:2], float(np.hypot(*tg.x0[2:])),
                         min(tg.death, self.n_steps * self.dt) - tg.birth, self.meas_sd,
                         "meas_sd")
-        _checks.fits("n_steps, targets and clutter_rate", self._run_bytes())
 
     def _run_bytes(self) -> float:
         """About the bytes of a simulated run: the truth, each target's propagation from
