@@ -118,11 +118,11 @@ def assemble_one(F, means, covs, q, E, k, vertex, pnorm, w, trace: bool, mean, c
     else:
         _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
                   state == GRADED)
-    return np.isfinite(stats[0]) and _finite(cov) and _finite(mean)
+    return np.isfinite(stats[0]) and all_finite(cov) and all_finite(mean)
 
 
 @jit
-def _finite(a) -> bool:
+def all_finite(a) -> bool:
     for x in a.flat:
         if not np.isfinite(x):
             return False
@@ -227,19 +227,23 @@ def _fused_mean(F, means, w, Vt, Ri, rhs, mean, e: int):
 
 
 @jit
-def fuse_at(F, means, W, mean, cov, shares) -> bool:
-    """The CI formula at fixed weights W (B, N), each > 0 and of any sum (the rules' weights:
-    naive's are all 1), without the solver's certificate or best-vertex rule: mean (B, n),
-    cov (B, n, n) = (sum_i w_i Y_i)^-1 in F's units, and the gain shares
-    tr(K_i) / n = w_i |F_i R^-1|_F^2 / n (B, N). Returns False where Y(w) is not positive
-    definite to rounding (the rules' `_output` refuses a result that is not finite)."""
+def fuse_at(F, means, k, W, trace: bool, mean, cov, obj, shares) -> bool:
+    """The CI formula at fixed weights W (B, N), each >= 0 and of any sum (the rules'
+    weights: naive's are all 1), without the solver's certificate or best-vertex rule, on
+    the factors F (B, N, n, n) of the covariances scaled by 2^-k (B,) (`prepare`): mean
+    (B, n) and cov (B, n, n) = (sum_i w_i Y_i)^-1 in the input's units, obj (B,) the
+    criterion at it, and the gain shares tr(K_i) / n = w_i |F_i R^-1|_F^2 / n (B, N).
+    Returns False where Y(w) is not positive definite to rounding."""
     B, N, n = means.shape
     ws = work(N, n)
     for b in range(B):
         if not factor(F[b], W[b], ws.At, ws.Vt, ws.R, ws.Ri)[1]:
             return False
         _mean_at(F[b], means[b], W[b], ws.Vt, ws.Ri, ws.rhs, mean[b])
-        _covariance_at(ws.Ri, cov[b])
+        _covariance_at(ws.Ri, ws.P)
+        scaled(ws.P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
+        f = value(ws.R, ws.Ri, trace)
+        obj[b] = np.ldexp(f, k[b]) if trace else f + n * k[b] * _LN2
         gradient_at(F[b], ws.Ri, ws.P, ws.B, ws.g, False)  # g_i = -|F_i R^-1|_F^2
         for i in range(N):
             shares[b, i] = -W[b, i] * ws.g[i] / n
@@ -252,7 +256,7 @@ def _mean_at(F, means, w, Vt, Ri, rhs, mean):
     (means near 1.8e308), in units of a power of two near the largest mean, exact but for
     subnormals, which then do not matter."""
     _fused_mean(F, means, w, Vt, Ri, rhs, mean, 0)
-    if not _finite(mean):
+    if not all_finite(mean):
         e = 0
         for i in range(w.size):
             for a in range(F.shape[1]):

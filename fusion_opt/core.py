@@ -207,7 +207,10 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
     q, E = _detection(req, B, N, batch)
     work = _Arrays.of(B, N, n)
-    if req.method in rules.RULES:
+    if req.method in rules.FIXED:
+        _prepare(means, covs, q, E, work, names, batch)
+        out = _fixed(req, means, covs, work, batch)
+    elif req.method in rules.RULES:
         _prepare(means, covs, q, E, work, names, batch)
         out = _rules(req, means, covs, work.k, work.F, batch)
         _check_finite(req, out)
@@ -481,28 +484,34 @@ def _overflow(a, batch: bool) -> FusionInputError:
         "(covariances or means too large, or MBCI scales too small for it to be represented)")
 
 
+def _fixed(req, means, covs, a, batch):
+    """A rule of rules.FIXED (the CI formula at the rule's weights), the whole batch in one
+    compiled call on the factors `prepare` left in a."""
+    B = means.shape[0]
+    W, mean, cov, obj, shares = rules.fixed(req.method, means, covs, a.F, a.k, req.trace)
+    weights, are = (shares, rules.GAIN_SHARES) if req.method == "naive" else \
+        (W, rules.CI_WEIGHTS)
+    status = np.full(B, Status.CLOSED_FORM, dtype=object) if batch else (Status.CLOSED_FORM,)
+    return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
+            are)
+
+
 def _rules(req, means, covs, k, F, batch):
-    """A rule of rules.py on the prescaled covariances and their factors F (B, N, n, n)
-    from `prepare`: the whole batch in one call for the rules of rules.BATCHED, problem by
-    problem for the others."""
+    """A rule of rules.py not in rules.FIXED, problem by problem, on the prescaled
+    covariances and their factors F (B, N, n, n) from `prepare`."""
     B, N, n = means.shape
     shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
     scaled = np.ldexp(symmetrised(covs), shift)
     rule = rules.RULES[req.method]
     factors = req.method in rules.FACTORED
-    if req.method in rules.BATCHED:
-        o = rule(means, scaled, req.criterion, F=F)
-        weights, mean, scaled_cov, weights_are = o.weights, o.mean, o.cov, o.weights_are
-        status = np.array([Status(o.status)] * B, dtype=object)
-    else:
-        cross = _cross(req.args.get("cross"), B, N, n, batch) \
-            if "cross" in _ARGS[req.method] else None
-        outs = [rule(means[b], scaled[b], req.criterion, **({"F": F[b]} if factors else {}),
-                     **({} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}))
-                for b in range(B)]
-        weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
-        status = np.array([Status(o.status) for o in outs], dtype=object)
-        weights_are = outs[0].weights_are
+    cross = _cross(req.args.get("cross"), B, N, n, batch) \
+        if "cross" in _ARGS[req.method] else None
+    outs = [rule(means[b], scaled[b], req.criterion, **({"F": F[b]} if factors else {}),
+                 **({} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}))
+            for b in range(B)]
+    weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
+    status = np.array([Status(o.status) for o in outs], dtype=object)
+    weights_are = outs[0].weights_are
     with np.errstate(over="ignore"):  # an overflow is refused by _check_finite
         cov = np.ldexp(scaled_cov, -shift[:, 0])
         if req.trace:
@@ -535,9 +544,7 @@ def _check_finite(req, out):
     w, mean, cov, obj = out[:4]
     if not (np.isfinite(mean).all() and np.isfinite(cov).all() and np.isfinite(obj).all()
             and np.isfinite(w).all()):
-        raise FusionInputError(
-            "the fused estimate overflows float64 (covariances or means too large, or MBCI "
-            "scales too small for the result to be represented)")
+        raise FusionInputError(rules.OVERFLOW_MESSAGE)
     diag = np.diagonal(cov, axis1=-2, axis2=-1)
     if not (diag > 0).all():
         raise FusionSolverError(req.backend or req.method, "numerical_error",

@@ -1,5 +1,7 @@
 """Fusion rules other than optimised CI, for comparison: `RULES[name](means, covs, criterion,
-**args) -> RuleOutput`, called by the core (`fuse(method=name)`, `fuse_batch`).
+**args) -> RuleOutput` for one problem; the core (`fuse(method=name)`, `fuse_batch`) calls
+`fixed` for the rules of FIXED, a whole batch in one compiled call (`fuse_fixed`, which
+the functions of RULES for them call too), and RULES problem by problem for the others.
 
 Inputs arrive validated: float64 means (N, n) and covs (N, n, n), finite, symmetric and
 positive definite, multiplied by a power of two so that the nodes' scales sit around 1
@@ -51,7 +53,7 @@ How the numbers stay finite and accurate:
   tolerance that follows the conditioning made EI depend on the coordinates instead.
 - naive, fast-ci and ifci never invert a covariance: node i enters as its factor F_i and the
   weighted sum of informations as the QR of [sqrt(w_i) F_i], as in the compiled path
-  (`_ci_with`).
+  (`fuse_fixed`, by `assemble.fuse_at`).
 - IFCI's weights are formed from ratios to det Y, which lie in [0, 1]:
   1 - det(Y - Y_i)/det Y = 1 - prod_k (1 - alpha_k), alpha the squared singular values of
   F_i R^-1 (Y = R^T R), by log1p/expm1, and det Y_i / det Y from the triangular
@@ -77,7 +79,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.linalg import lapack
 
-from .assemble import fuse_at
+from .assemble import all_finite, fuse_at
 from .factored import factor, work
 from .linalg import jit, matmul
 from .prepare import MAX_CONDITION
@@ -104,9 +106,8 @@ class RuleOutput(NamedTuple):
 
 
 def naive(means, covs, criterion, *, F=None) -> RuleOutput:
-    """Independent (Kalman) fusion: CI formula with every weight 1 (batched, see BATCHED)."""
-    return _ci_with(means, _factors(covs) if F is None else F, np.ones(means.shape[:-1]),
-                    "naive", GAIN_SHARES)
+    """Independent (Kalman) fusion: the CI formula with every weight 1 (`fuse_fixed`)."""
+    return _one("naive", means, covs, criterion, F)
 
 
 def known_cross(means, covs, criterion, *, cross, F=None) -> RuleOutput:
@@ -127,23 +128,77 @@ def known_cross(means, covs, criterion, *, cross, F=None) -> RuleOutput:
 
 
 def fast_ci(means, covs, criterion, *, F=None) -> RuleOutput:
-    """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002; batched)."""
-    tr = np.trace(covs, axis1=-2, axis2=-1)
-    ratio = tr.min(-1, keepdims=True) / tr  # in (0, 1]: no overflow whatever the scales
-    w = ratio / ratio.sum(-1, keepdims=True)
-    return _ci_with(means, _factors(covs) if F is None else F, w, "fast-ci", CI_WEIGHTS)
+    """CI with w_i = (1 / tr P_i) / sum_j (1 / tr P_j) (Niehsen 2002; `fuse_fixed`)."""
+    return _one("fast-ci", means, covs, criterion, F)
 
 
 def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
     """CI with the determinant weights of Franken & Hupper (2005), from ratios to det Y
-    (batched, see BATCHED)."""
-    F = np.ascontiguousarray(_factors(covs) if F is None else F, dtype=float)
-    *lead, N, n = means.shape
-    score = np.empty((*lead, N))
-    if not _ifci_scores(F.reshape(-1, N, n, n), score.reshape(-1, N)) \
-            or not np.isfinite(score).all():
-        raise _not_positive_definite("ifci")
-    return _ci_with(means, F, score / score.sum(-1, keepdims=True), "ifci", CI_WEIGHTS)
+    (`fuse_fixed`)."""
+    return _one("ifci", means, covs, criterion, F)
+
+
+def _one(method, means, covs, criterion, F) -> RuleOutput:
+    """A rule of FIXED on one problem, means (N, n) and covs (N, n, n), called directly (the
+    core calls `fixed` on its prescaled batch)."""
+    covs = np.array(covs, dtype=float)
+    F = _factors(covs) if F is None else F
+    W, mean, cov, _, shares = fixed(method, np.array(means, dtype=float)[None], covs[None],
+                                    np.array(F, dtype=float)[None], np.zeros(1, np.int64),
+                                    criterion == "trace")
+    weights, are = (shares[0], GAIN_SHARES) if method == "naive" else (W[0], CI_WEIGHTS)
+    return _output(method, weights, mean[0], cov[0], Status.CLOSED_FORM, are)
+
+
+def fixed(method, means, covs, F, k, trace: bool):
+    """Rule `method` of FIXED on B problems, means (B, N, n) and covs (B, N, n, n), whose
+    factors F (B, N, n, n) are of the covariances scaled by 2^-k (B,) (`prepare`): the
+    weights W (B, N), mean (B, n), cov (B, n, n), the criterion obj (B,) and the gain
+    shares (B, N). Raises FusionSolverError where a weighted sum of informations is not
+    positive definite to rounding, FusionInputError where a result overflows float64."""
+    B, N, n = means.shape
+    W, shares, obj = np.empty((B, N)), np.empty((B, N)), np.empty(B)
+    mean, cov = np.empty((B, n)), np.empty((B, n, n))
+    code = fuse_fixed(FIXED[method], F, means, covs, k, trace, W, mean, cov, obj, shares)
+    if code == NOT_PD:
+        raise _not_positive_definite(method)
+    if code == OVERFLOW:
+        raise FusionInputError(OVERFLOW_MESSAGE)
+    return W, mean, cov, obj, shares
+
+
+@jit
+def fuse_fixed(rule, F, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> int:
+    """The rules of FIXED on B problems (`fixed` says what each array holds): W receives
+    the rule's weights (naive: 1; fast-ci: 1 / tr P_i over its sum, from the traces of
+    the scaled covariances, whose ratios are the input's; ifci: its scores over their
+    sum), then `fuse_at` the estimate. Returns OK, NOT_PD or OVERFLOW."""
+    B, N, n = means.shape
+    if rule == IFCI and not _ifci_scores(F, W):
+        return NOT_PD
+    for b in range(B):
+        if rule == NAIVE:
+            W[b, :] = 1.0
+            continue
+        if rule == FAST_CI:
+            for i in range(N):
+                W[b, i] = 0.0
+                for a in range(n):
+                    W[b, i] += np.ldexp(covs[b, i, a, a], -k[b])
+            low = W[b].min()  # ratios in (0, 1]: no overflow whatever the scales
+            for i in range(N):
+                W[b, i] = low / W[b, i]
+        total = W[b].sum()
+        if not 0.0 < total < np.inf:
+            return NOT_PD
+        for i in range(N):
+            W[b, i] /= total
+    if not fuse_at(F, means, k, W, trace, mean, cov, obj, shares):
+        return NOT_PD
+    for b in range(B):
+        if not (np.isfinite(obj[b]) and all_finite(mean[b]) and all_finite(cov[b])):
+            return OVERFLOW
+    return OK
 
 
 @jit
@@ -204,9 +259,13 @@ RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
 PAIR_ONLY = frozenset({"ici", "ei"})
 # Rules that take the square-root factors F (module docstring).
 FACTORED = frozenset({"naive", "known-cross", "fast-ci", "ifci"})
-# Rules that take a batch, means (B, N, n) and covs (B, N, n, n), in one call (each
-# problem computed as alone); the others take one problem at a time.
-BATCHED = frozenset({"naive", "fast-ci", "ifci"})
+# The rules of the CI formula at fixed weights, computed by one compiled call for a whole
+# batch (`fixed`); the others take one problem at a time.
+NAIVE, FAST_CI, IFCI = 0, 1, 2
+FIXED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI}
+OK, NOT_PD, OVERFLOW = 0, 1, 2
+OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means too large, "
+                    "or MBCI scales too small for the result to be represented)")
 
 
 def _factors(covs):
@@ -220,24 +279,6 @@ def _solve_lower(L, B, transpose=False):
     `_output` refuses."""
     X, info = lapack.dtrtrs(L, B, lower=1, trans=int(transpose))
     return X if info == 0 else np.full(X.shape, np.nan)
-
-
-def _ci_with(means, F, w, method, weights_are) -> RuleOutput:
-    """The CI formula with weights w (..., N): P = (sum_i w_i Y_i)^-1, K_i = P w_i Y_i, by
-    the compiled path's arithmetic (`assemble.fuse_at`: the QR of [sqrt(w_i) F_i], P =
-    R^-1 R^-T, tr(K_i) = w_i |F_i R^-1|_F^2, the mean by least squares), on the factors F
-    (..., N, n, n). Leading axes are problems. (An inverted covariance of condition 1e12
-    loses 1e-5 of its accuracy, a triangular factor's inverse eps sqrt(cond).)"""
-    *lead, N, n = means.shape
-    B = int(np.prod(lead))
-    W = np.array(np.broadcast_to(w, (*lead, N)), dtype=float).reshape(B, N)
-    mean, P, shares = np.empty((B, n)), np.empty((B, n, n)), np.empty((B, N))
-    if not fuse_at(np.ascontiguousarray(F, dtype=float).reshape(B, N, n, n),
-                   np.ascontiguousarray(means, dtype=float).reshape(B, N, n), W, mean, P, shares):
-        raise _not_positive_definite(method)
-    mean, P, shares = mean.reshape(*lead, n), P.reshape(*lead, n, n), shares.reshape(*lead, N)
-    weights = W.reshape(*lead, N) if weights_are == CI_WEIGHTS else shares
-    return _output(method, weights, mean, P, Status.CLOSED_FORM, weights_are)
 
 
 def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) -> RuleOutput:

@@ -262,33 +262,37 @@ def test_fuse_refuses_wrong_rule_arguments():
         fo.fuse(np.zeros((3, 2)), P, method="naive", cross=np.zeros((3, 3, 2, 2)))
 
 
-def test_ifci_refuses_scores_it_cannot_form(monkeypatch):
-    """Where the sum of the informations is not positive definite in double precision
-    (the compiled scores report it), IFCI raises, naming itself, rather than dividing by a
-    NaN sum."""
+@pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci"])
+def test_the_fixed_weight_kernel_reports_informations_that_do_not_factor(method):
+    """The compiled kernel of naive, fast-ci and ifci, given factors whose informations sum
+    to a singular matrix (node 1's factor 0, node 0's of rank 1), reports NOT_PD before it
+    divides by IFCI's score sum or computes on unset outputs."""
     from fusion_opt import rules
 
-    monkeypatch.setattr(rules, "_ifci_scores", lambda F, score: False)
-    with pytest.raises(fo.FusionSolverError, match=r"^method 'ifci' failed with status "
-                                                   r"'numerical_error'"):
-        fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), "ifci")
+    F = np.zeros((1, 2, 2, 2))
+    F[0, 0, 0, 0] = 1.0
+    covs = np.tile(np.eye(2), (1, 2, 1, 1))
+    out = [np.empty(s) for s in ((1, 2), (1, 2), (1, 2, 2), (1,), (1, 2))]
+    assert rules.fuse_fixed(rules.FIXED[method], F, np.zeros((1, 2, 2)), covs,
+                            np.zeros(1, np.int64), True, *out) == rules.NOT_PD
 
 
-@pytest.mark.parametrize("method", ["naive", "fast-ci"])
-def test_a_ci_rule_whose_weighted_informations_do_not_factor_is_refused_at_once(
-        method, monkeypatch):
-    """Where the compiled CI formula finds the weighted sum of informations not positive
-    definite, the rule raises, naming itself, without computing on the unset outputs (or
-    warning about them)."""
+@pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci"])
+@pytest.mark.parametrize("code, error, message", [
+    ("NOT_PD", fo.FusionSolverError, "^method '{}' failed with status 'numerical_error'"),
+    ("OVERFLOW", fo.FusionInputError, "^the fused estimate overflows float64")])
+def test_a_fixed_weight_rule_raises_for_what_its_kernel_reports(method, code, error, message,
+                                                                monkeypatch):
+    """What the kernel reports becomes the rule's error, naming it, without a warning from
+    computing on the unset outputs."""
     import warnings
 
     from fusion_opt import rules
 
-    monkeypatch.setattr(rules, "fuse_at", lambda *args: False)
+    monkeypatch.setattr(rules, "fuse_fixed", lambda *args: getattr(rules, code))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with pytest.raises(fo.FusionSolverError, match=rf"^method '{method}' failed with "
-                                                       r"status 'numerical_error'"):
+        with pytest.raises(error, match=message.format(method)):
             fo.fuse(np.zeros((2, 2)), np.stack([np.eye(2)] * 2), method)
 
 

@@ -96,6 +96,7 @@ def test_bands_are_in_the_legend(drawn):
     assert any("95% interval of the mean" in t for t in labels)
 
 
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # matplotlib's ticks
 @pytest.mark.parametrize("xy, arrows", [([[1e300, 1e300], [1.5e300, 1.7e300]], 1),
                                         ([[0.0, 0.0], [1e308, 0.0], [0.0, 1.0], [1e308, 1.0]], 0)])
 def test_a_path_far_out_is_drawn_and_saved(tmp_path, xy, arrows):
