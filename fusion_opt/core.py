@@ -207,12 +207,12 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
     q, E = _detection(req, B, N, batch)
     work = _Arrays.of(B, N, n)
-    if req.method in rules.FIXED:
+    if req.method in rules.COMPILED:
         _prepare(means, covs, q, E, work, names, batch)
-        out = _fixed(req, means, covs, work, batch)
+        out = _compiled(req, means, covs, work, batch)
     elif req.method in rules.RULES:
         _prepare(means, covs, q, E, work, names, batch)
-        out = _rules(req, means, covs, work.k, work.F, batch)
+        out = _known_cross(req, means, covs, work.k, work.F, batch)
         _check_finite(req, out)
     elif req.backend in EXACT:
         out = _exact(req, means, covs, q, E, work, names, batch)
@@ -337,9 +337,10 @@ def _rule_kernels() -> None:
     from .fusion import fuse, optimality_gap
 
     means, covs = np.zeros((3, 2)), np.tile(np.eye(2), (3, 1, 1))
-    for method in ("fast-ci", "ifci"):
-        fuse(means, covs, method)
-    fuse(means[:2], covs[:2], "ici")
+    fuse(means, covs, "fast-ci")  # naive's and ifci's kernel too
+    fuse(means[:2], covs[:2], "ici")  # ei's too
+    fuse(means, covs, "known-cross", cross=np.tile(np.eye(2), (3, 3, 1, 1)) * 0.5 +
+         0.5 * np.eye(2) * np.eye(3)[:, :, None, None])
     optimality_gap(covs, np.full(3, 1 / 3))
 
 
@@ -484,31 +485,27 @@ def _overflow(a, batch: bool) -> FusionInputError:
         "(covariances or means too large, or MBCI scales too small for it to be represented)")
 
 
-def _fixed(req, means, covs, a, batch):
-    """A rule of rules.FIXED (the CI formula at the rule's weights), the whole batch in one
-    compiled call on the factors `prepare` left in a."""
+def _compiled(req, means, covs, a, batch):
+    """A rule of rules.COMPILED, the whole batch in one compiled call (the fixed-weight
+    rules on the factors `prepare` left in a)."""
     B = means.shape[0]
-    W, mean, cov, obj, shares = rules.fixed(req.method, means, covs, a.F, a.k, req.trace)
-    weights, are = (shares, rules.GAIN_SHARES) if req.method == "naive" else \
-        (W, rules.CI_WEIGHTS)
-    status = np.full(B, Status.CLOSED_FORM, dtype=object) if batch else (Status.CLOSED_FORM,)
+    weights, mean, cov, obj, status, are = rules.compiled(req.method, means, covs, a.F, a.k,
+                                                          req.trace)
+    status = np.full(B, status, dtype=object) if batch else (status,)
     return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
             are)
 
 
-def _rules(req, means, covs, k, F, batch):
-    """A rule of rules.py not in rules.FIXED, problem by problem, on the prescaled
-    covariances and their factors F (B, N, n, n) from `prepare`."""
+def _known_cross(req, means, covs, k, F, batch):
+    """known-cross (the rule of rules.RULES not in rules.COMPILED), problem by problem, on
+    the prescaled covariances, their factors F (B, N, n, n) from `prepare`, and cross
+    scaled alike."""
     B, N, n = means.shape
     shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
     scaled = np.ldexp(symmetrised(covs), shift)
-    rule = rules.RULES[req.method]
-    factors = req.method in rules.FACTORED
-    cross = _cross(req.args.get("cross"), B, N, n, batch) \
-        if "cross" in _ARGS[req.method] else None
-    outs = [rule(means[b], scaled[b], req.criterion, **({"F": F[b]} if factors else {}),
-                 **({} if cross is None else {"cross": np.ldexp(cross[b], shift[b, 0])}))
-            for b in range(B)]
+    cross = _cross(req.args.get("cross"), B, N, n, batch)
+    outs = [rules.known_cross(means[b], scaled[b], req.criterion, F=F[b],
+                              cross=np.ldexp(cross[b], shift[b, 0])) for b in range(B)]
     weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
     status = np.array([Status(o.status) for o in outs], dtype=object)
     weights_are = outs[0].weights_are

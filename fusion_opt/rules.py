@@ -1,12 +1,13 @@
 """Fusion rules other than optimised CI, for comparison: `RULES[name](means, covs, criterion,
 **args) -> RuleOutput` for one problem; the core (`fuse(method=name)`, `fuse_batch`) calls
-`fixed` for the rules of FIXED, a whole batch in one compiled call (`fuse_fixed`, which
-the functions of RULES for them call too), and RULES problem by problem for the others.
+`compiled` for the rules of COMPILED, a whole batch in one compiled call (`fuse_fixed`,
+`fuse_pair`, which the functions of RULES for them call too), and known-cross problem by
+problem.
 
 Inputs arrive validated: float64 means (N, n) and covs (N, n, n), finite, symmetric and
 positive definite, multiplied by a power of two so that the nodes' scales sit around 1
 (they may still differ by up to ~1e150 either way, each with a condition number up to ~1e13).
-The rules of FACTORED also take F (N, n, n), the covariances' square-root factors,
+naive, fast-ci, ifci and known-cross also take F (N, n, n), the covariances' square-root factors,
 F_i = C_i^-1 lower triangular, P_i = C_i C_i^T, so Y_i = F_i^T F_i: the core passes those
 its compiled checks computed (`prepare.py`), so they are not computed twice (`_factors`
 computes them for a direct call).
@@ -73,6 +74,7 @@ for naive, known-cross and ei ("gain_shares").
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -81,12 +83,13 @@ from scipy.linalg import lapack
 
 from .assemble import all_finite, fuse_at
 from .factored import factor, work
-from .linalg import jit, matmul
-from .prepare import MAX_CONDITION
+from .linalg import cholesky, jit, lower_inverse, matmul
+from .prepare import MAX_CONDITION, scaled
 from .results import FusionInputError, FusionSolverError, Status
 from .validation import SYMMETRY_RTOL, finite_array
 
 CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
+_LN2 = np.log(2.0)
 _EPS = np.finfo(float).eps
 # EI: regulariser of the mutual mean on a tied axis (Sijs & Lazar's eta), rounding level.
 EI_ETA = _EPS
@@ -139,37 +142,47 @@ def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
 
 
 def _one(method, means, covs, criterion, F) -> RuleOutput:
-    """A rule of FIXED on one problem, means (N, n) and covs (N, n, n), called directly (the
-    core calls `fixed` on its prescaled batch)."""
+    """A rule of COMPILED on one problem, means (N, n) and covs (N, n, n), called directly
+    (the core calls `compiled` on its prescaled batch)."""
     covs = np.array(covs, dtype=float)
     F = _factors(covs) if F is None else F
-    W, mean, cov, _, shares = fixed(method, np.array(means, dtype=float)[None], covs[None],
-                                    np.array(F, dtype=float)[None], np.zeros(1, np.int64),
-                                    criterion == "trace")
-    weights, are = (shares[0], GAIN_SHARES) if method == "naive" else (W[0], CI_WEIGHTS)
-    return _output(method, weights, mean[0], cov[0], Status.CLOSED_FORM, are)
+    weights, mean, cov, _, status, are = compiled(
+        method, np.array(means, dtype=float)[None], covs[None], np.array(F, dtype=float)[None],
+        np.zeros(1, np.int64), criterion == "trace")
+    return _output(method, weights[0], mean[0], cov[0], status, are)
 
 
-def fixed(method, means, covs, F, k, trace: bool):
-    """Rule `method` of FIXED on B problems, means (B, N, n) and covs (B, N, n, n), whose
-    factors F (B, N, n, n) are of the covariances scaled by 2^-k (B,) (`prepare`): the
-    weights W (B, N), mean (B, n), cov (B, n, n), the criterion obj (B,) and the gain
-    shares (B, N). Raises FusionSolverError where a weighted sum of informations is not
-    positive definite to rounding, FusionInputError where a result overflows float64."""
+def compiled(method, means, covs, F, k, trace: bool):
+    """Rule `method` of COMPILED on B problems, means (B, N, n) and covs (B, N, n, n), in
+    one compiled call; F (B, N, n, n) are the factors of the covariances scaled by 2^-k
+    (B,) (`prepare`), which the pair rules do not use: (weights (B, N), mean (B, n),
+    cov (B, n, n), the criterion at it (B,), the status, weights_are). Raises
+    FusionSolverError where a result is not positive definite to rounding in the scaled
+    units, FusionInputError where it overflows float64 in the input's."""
     B, N, n = means.shape
     W, shares, obj = np.empty((B, N)), np.empty((B, N)), np.empty(B)
     mean, cov = np.empty((B, n)), np.empty((B, n, n))
-    code = fuse_fixed(FIXED[method], F, means, covs, k, trace, W, mean, cov, obj, shares)
+    rule = COMPILED[method]
+    if method in PAIR_ONLY:
+        code = fuse_pair(rule, means, covs, k, trace, W, mean, cov, obj, shares)
+    else:
+        code = fuse_fixed(rule, F, means, covs, k, trace, W, mean, cov, obj, shares)
     if code == NOT_PD:
         raise _not_positive_definite(method)
+    if code == RATIO:
+        raise FusionSolverError(method, "numerical_error", "the covariances' ratio exceeds "
+                                "the double-precision range", role="method")
     if code == OVERFLOW:
         raise FusionInputError(OVERFLOW_MESSAGE)
-    return W, mean, cov, obj, shares
+    status = Status.OPTIMAL if method == "ici" else Status.CLOSED_FORM
+    if method in ("naive", "ei"):
+        return shares, mean, cov, obj, status, GAIN_SHARES
+    return W, mean, cov, obj, status, CI_WEIGHTS
 
 
 @jit
 def fuse_fixed(rule, F, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> int:
-    """The rules of FIXED on B problems (`fixed` says what each array holds): W receives
+    """naive, fast-ci and ifci on B problems (`compiled` says what each array holds): W receives
     the rule's weights (naive: 1; fast-ci: 1 / tr P_i over its sum, from the traces of
     the scaled covariances, whose ratios are the input's; ifci: its scores over their
     sum), then `fuse_at` the estimate. Returns OK, NOT_PD or OVERFLOW."""
@@ -226,29 +239,13 @@ def _ifci_scores(F, score) -> bool:
 
 
 def ici(means, covs, criterion) -> RuleOutput:
-    """Inverse covariance intersection of N = 2 estimates (module docstring)."""
-    sigma, T, Tinv = _pencil(covs, "ici")
-    la, lb = _ici_weight(sigma, T, criterion)
-    l = 2.0 * np.log(sigma)  # log mu
-    g1, g2 = _ici_logs(la, lb, l)
-    F = T * np.exp(0.5 * (l + g1 - g2))  # P = F F^T, per axis mu (a + b mu) / (a + b mu^2)
-    ka = np.exp(la - g2)  # K_a = T diag(a / (a + b mu^2)) T^-1, K_b = I - K_a
-    kb = np.exp(lb + 2.0 * l - g2)
-    gains = np.stack([(T * ka) @ Tinv, (T * kb) @ Tinv])
-    weights = np.array([np.exp(la), np.exp(lb)])  # CI's sense: (1, 0) gives node a
-    return _finish("ici", means, F @ F.T, gains, Status.OPTIMAL, weights)
+    """Inverse covariance intersection of N = 2 estimates (module docstring; `fuse_pair`)."""
+    return _one("ici", means, covs, criterion, None)
 
 
 def ei(means, covs, criterion) -> RuleOutput:
-    """Ellipsoidal intersection of N = 2 estimates (module docstring)."""
-    sigma, T, Tinv = _pencil(covs, "ei")
-    t = np.minimum(sigma, 1.0 / sigma) ** 2  # smaller over larger variance per axis
-    eta = np.where(1.0 - t < 10.0 * EI_ETA, EI_ETA, 0.0)
-    lose = t * eta / (1.0 - t + 2.0 * eta)  # the loser's share: 0, or 1/2 at a tie
-    ka = np.where(sigma < 1.0, 1.0 - lose, lose)  # node a's gain per axis
-    F = T * np.minimum(sigma, 1.0)  # P = F F^T, per axis the smaller variance
-    gains = np.stack([(T * ka) @ Tinv, (T * (1.0 - ka)) @ Tinv])
-    return _finish("ei", means, F @ F.T, gains)
+    """Ellipsoidal intersection of N = 2 estimates (module docstring; `fuse_pair`)."""
+    return _one("ei", means, covs, criterion, None)
 
 
 RULES: dict[str, Callable[..., RuleOutput]] = {
@@ -257,13 +254,11 @@ RULES: dict[str, Callable[..., RuleOutput]] = {
 RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
     "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
-# Rules that take the square-root factors F (module docstring).
-FACTORED = frozenset({"naive", "known-cross", "fast-ci", "ifci"})
 # The rules of the CI formula at fixed weights, computed by one compiled call for a whole
 # batch (`fixed`); the others take one problem at a time.
-NAIVE, FAST_CI, IFCI = 0, 1, 2
-FIXED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI}
-OK, NOT_PD, OVERFLOW = 0, 1, 2
+NAIVE, FAST_CI, IFCI, ICI, EI = 0, 1, 2, 3, 4
+COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI}
+OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
 OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means too large, "
                     "or MBCI scales too small for the result to be represented)")
 
@@ -285,22 +280,29 @@ def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) ->
     """A rule given by its gains (N, n, n) and P; weights are CI weights if given, else the
     gain shares."""
     shares = np.trace(gains, axis1=-2, axis2=-1) / means.shape[-1]
-    mean = _mean(means, shares, lambda d: np.einsum("ijk,ik->j", gains, d))
+    mean = np.empty(means.shape[-1])
+    gain_mean(np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(gains), shares,
+              mean)
     if weights is None:
         return _output(method, shares, mean, P, status, GAIN_SHARES)
     return _output(method, weights, mean, P, status, CI_WEIGHTS)
 
 
-def _mean(means, shares, apply_gains):
-    """m = m_r + sum_i K_i (m_i - m_r) (sum_i K_i = I), r the node of the largest gain share;
-    apply_gains(d) = sum_i K_i d_i for d (..., N, n), given differences scaled by 2^-e so
-    that each is at most 2 in size and no product overflows."""
-    r = np.argmax(shares, axis=-1)[..., None, None]
-    ref = np.take_along_axis(means, r, axis=-2)  # (..., 1, n)
-    e = np.frexp(np.abs(means).max(axis=(-2, -1), keepdims=True))[1]
-    d = np.ldexp(means, -e) - np.ldexp(ref, -e)
-    with np.errstate(over="ignore"):  # a mean beyond the float range: refused in _output
-        return ref[..., 0, :] + np.ldexp(apply_gains(d), e[..., 0])
+@jit
+def gain_mean(means, K, shares, mean):
+    """mean (n,) = m_r + sum_i K_i (m_i - m_r) for means (N, n) and gains K (N, n, n) with
+    sum_i K_i = I, r the node of the largest gain share, the differences taken in units of
+    2^e, e the exponent of the largest |mean|, so that no product overflows (a result
+    beyond float64 comes back inf, which the callers refuse)."""
+    N, n = means.shape
+    r = np.argmax(shares)
+    e = math.frexp(np.abs(means).max())[1]
+    for a in range(n):
+        t = 0.0
+        for i in range(N):
+            for c in range(n):
+                t += K[i, a, c] * (np.ldexp(means[i, c], -e) - np.ldexp(means[r, c], -e))
+        mean[a] = means[r, a] + np.ldexp(t, e)
 
 
 def _not_positive_definite(method) -> FusionSolverError:
@@ -325,36 +327,115 @@ def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:
     return RuleOutput(weights, mean, P, status, weights_are)
 
 
-def _pencil(covs, method):
-    """P_b = T T^T and P_a = T diag(sigma^2) T^T for covs (2, n, n): sigma (n,) > 0, T and
-    T^-1 (n, n). sigma are the singular values of L_b^-1 L_a (Cholesky factors, lower):
-    with L_b^-1 L_a = U diag(sigma) V^T, T = L_b U."""
-    n = covs.shape[1]
-    La, Lb = np.linalg.cholesky(covs)
-    U, sigma, _ = np.linalg.svd(_solve_lower(Lb, La))
-    if sigma.min() == 0.0:
-        raise FusionSolverError(method, "numerical_error",
-                                "the covariances' ratio exceeds the double-precision range",
-                                role="method")
-    return sigma, Lb @ U, U.T @ _solve_lower(Lb, np.eye(n))
+@jit
+def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> int:
+    """ICI or EI on B pairs, means (B, 2, n) and covs (B, 2, n, n) (`compiled` says what the
+    outputs hold), in the basis of `_pencil`, per axis (module docstring). Returns OK,
+    NOT_PD (a result not finite or not positive definite in the scaled units), RATIO (the
+    covariances' ratio beyond float64) or OVERFLOW (the result beyond it in the input's)."""
+    B, n = means.shape[0], means.shape[2]
+    S, L, K = np.empty((2, n, n)), np.empty((2, n, n)), np.empty((2, n, n))
+    T, Tinv, P = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+    ka, kb, f = np.empty(n), np.empty(n), np.empty(n)
+    for b in range(B):
+        for i in range(2):
+            scaled(covs[b, i], 1.0, k[b], S[i])
+        sigma = _pencil(S, L, T, Tinv)
+        if sigma.min() == 0.0:
+            return RATIO
+        if rule == ICI:
+            la, lb = _ici_axes(sigma, T, trace, ka, kb, f)
+            W[b, 0], W[b, 1] = np.exp(la), np.exp(lb)  # CI's sense: (1, 0) gives node a
+        else:
+            _ei_axes(sigma, ka, kb, f)
+        _gains(T, Tinv, ka, K[0])
+        _gains(T, Tinv, kb, K[1])
+        for a in range(n):
+            for c in range(n):
+                t = 0.0
+                for j in range(n):
+                    t += T[a, j] * f[j] * f[j] * T[c, j]
+                P[a, c] = t
+        shares[b, 0], shares[b, 1] = np.trace(K[0]) / n, np.trace(K[1]) / n
+        if rule == EI:
+            W[b, 0], W[b, 1] = shares[b, 0], shares[b, 1]
+        gain_mean(means[b], K, shares[b], mean[b])
+        if not cholesky(P, L[0]) or not all_finite(mean[b]) or not np.isfinite(W[b]).all():
+            return NOT_PD
+        scaled(P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
+        if trace:
+            obj[b] = np.ldexp(np.trace(P), k[b])
+        else:
+            obj[b] = 2.0 * np.log(np.diag(L[0])).sum() + n * k[b] * _LN2
+        if not (np.isfinite(obj[b]) and all_finite(cov[b])):
+            return OVERFLOW
+    return OK
 
 
-def _ici_logs(la, lb, l):
-    """log(a + b mu) and log(a + b mu^2) per axis for a = e^la, b = e^lb, mu = e^l (n,)."""
-    return np.logaddexp(la, lb + l), np.logaddexp(la, lb + 2.0 * l)
+@jit
+def _pencil(S, L, T, Tinv):
+    """P_b = T T^T and P_a = T diag(sigma^2) T^T for S (2, n, n) symmetric positive
+    definite: returns sigma (n,) >= 0 (0 where the ratio leaves float64), T and T^-1 into
+    the buffers. sigma are the singular values of L_b^-1 L_a (Cholesky factors, lower, in
+    L): with L_b^-1 L_a = U diag(sigma) V^T, T = L_b U and T^-1 = U^T L_b^-1."""
+    n = S.shape[1]
+    for i in range(2):
+        if not cholesky(S[i], L[i]):
+            return np.zeros(n)
+    lower_inverse(L[1], Tinv)  # L_b^-1, then overwritten
+    M = np.empty((n, n))
+    matmul(Tinv, L[0], M)
+    U, sigma, _ = np.linalg.svd(M)
+    matmul(L[1], U, T)
+    Lbi = Tinv.copy()
+    matmul(np.ascontiguousarray(U.T), Lbi, Tinv)
+    return sigma
 
 
-def _ici_weight(sigma, T, criterion):
-    """(log(1 - w), log w) minimising ICI's tr P(w) or log det P(w), both convex in w: per
-    axis, p(w) = mu (a + b mu) / (a + b mu^2) has p'' = 2 mu^2 (mu - 1)^2 (mu + 1) /
-    (a + b mu^2)^3 >= 0, and (log p)'' >= 0 likewise. Bisection on the sign of
-    f'(w) in u = log(w / (1 - w)), down to the rounding of w and 1 - w (`_ici_bisect`)."""
-    l = 2.0 * np.log(sigma)
-    sign = np.sign(1.0 - sigma)  # sign of p'(w) per axis
-    with np.errstate(divide="ignore"):  # sigma = 1: the axis does not depend on w
-        log_gap = np.log(np.abs(1.0 - sigma)) + np.log1p(sigma)  # log |1 - mu|
-    log_c = 2.0 * np.log(np.linalg.norm(T, axis=0))  # tr P = sum_k c_k p_k
-    return _ici_bisect(l, sign, log_gap, log_c, criterion == "trace")
+@jit
+def _ici_axes(sigma, T, trace: bool, ka, kb, f):
+    """ICI's weight (log(1 - w), log w) minimising its criterion (`_ici_bisect`), and per
+    axis node a's and b's gains ka, kb and the fused factor f (P = T diag(f^2) T^T):
+    p = mu (a + b mu) / (a + b mu^2), K_a = a / (a + b mu^2), K_b = b mu^2 / (a + b mu^2),
+    kept in logs (a = 1 - w, b = w, mu = sigma^2)."""
+    n = sigma.size
+    l, sign, log_gap, log_c = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    for j in range(n):
+        l[j] = 2.0 * np.log(sigma[j])  # log mu
+        sign[j] = np.sign(1.0 - sigma[j])  # sign of p'(w)
+        log_gap[j] = np.log(abs(1.0 - sigma[j])) + np.log1p(sigma[j])  # log |1 - mu|
+        log_c[j] = np.log((T[:, j] * T[:, j]).sum())  # tr P = sum_j c_j p_j
+    la, lb = _ici_bisect(l, sign, log_gap, log_c, trace)
+    for j in range(n):
+        g1, g2 = np.logaddexp(la, lb + l[j]), np.logaddexp(la, lb + 2.0 * l[j])
+        f[j] = np.exp(0.5 * (l[j] + g1 - g2))
+        ka[j], kb[j] = np.exp(la - g2), np.exp(lb + 2.0 * l[j] - g2)
+    return la, lb
+
+
+@jit
+def _ei_axes(sigma, ka, kb, f):
+    """EI per axis: the smaller variance (f^2), node a's gain 1 or 0 but for the tie rule
+    (the loser's share t eta / (1 - t + 2 eta) where the variances tie within 10 eta)."""
+    for j in range(sigma.size):
+        t = min(sigma[j], 1.0 / sigma[j]) ** 2  # smaller over larger variance
+        eta = EI_ETA if 1.0 - t < 10.0 * EI_ETA else 0.0
+        lose = t * eta / (1.0 - t + 2.0 * eta)  # 0, or 1/2 at an exact tie
+        ka[j] = 1.0 - lose if sigma[j] < 1.0 else lose
+        kb[j] = 1.0 - ka[j]
+        f[j] = min(sigma[j], 1.0)
+
+
+@jit
+def _gains(T, Tinv, kk, K):
+    """K = T diag(kk) T^-1."""
+    n = kk.size
+    for a in range(n):
+        for c in range(n):
+            t = 0.0
+            for j in range(n):
+                t += T[a, j] * kk[j] * Tinv[j, c]
+            K[a, c] = t
 
 
 @jit

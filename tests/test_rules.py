@@ -273,23 +273,25 @@ def test_the_fixed_weight_kernel_reports_informations_that_do_not_factor(method)
     F[0, 0, 0, 0] = 1.0
     covs = np.tile(np.eye(2), (1, 2, 1, 1))
     out = [np.empty(s) for s in ((1, 2), (1, 2), (1, 2, 2), (1,), (1, 2))]
-    assert rules.fuse_fixed(rules.FIXED[method], F, np.zeros((1, 2, 2)), covs,
+    assert rules.fuse_fixed(rules.COMPILED[method], F, np.zeros((1, 2, 2)), covs,
                             np.zeros(1, np.int64), True, *out) == rules.NOT_PD
 
 
-@pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci"])
+@pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci", "ici", "ei"])
 @pytest.mark.parametrize("code, error, message", [
     ("NOT_PD", fo.FusionSolverError, "^method '{}' failed with status 'numerical_error'"),
+    ("RATIO", fo.FusionSolverError, "^method '{}' failed .* the covariances' ratio exceeds"),
     ("OVERFLOW", fo.FusionInputError, "^the fused estimate overflows float64")])
-def test_a_fixed_weight_rule_raises_for_what_its_kernel_reports(method, code, error, message,
-                                                                monkeypatch):
+def test_a_compiled_rule_raises_for_what_its_kernel_reports(method, code, error, message,
+                                                            monkeypatch):
     """What the kernel reports becomes the rule's error, naming it, without a warning from
     computing on the unset outputs."""
     import warnings
 
     from fusion_opt import rules
 
-    monkeypatch.setattr(rules, "fuse_fixed", lambda *args: getattr(rules, code))
+    kernel = "fuse_pair" if method in rules.PAIR_ONLY else "fuse_fixed"
+    monkeypatch.setattr(rules, kernel, lambda *args: getattr(rules, code))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         with pytest.raises(error, match=message.format(method)):
