@@ -282,6 +282,20 @@ def lower_inverse(L, X):
 
 
 @jit
+def lower_solve(L, B, X):
+    """X = L^-1 B by forward substitution, for a lower-triangular L with a nonzero diagonal
+    and B (n, k) (X may not be L or B): exact where B = L (the identity), as LAPACK's
+    dtrtrs, which a product with L^-1 is not."""
+    n, k = B.shape
+    for j in range(k):
+        for i in range(n):
+            t = B[i, j]
+            for p in range(i):
+                t -= L[i, p] * X[p, j]
+            X[i, j] = t / L[i, i]
+
+
+@jit
 def upper_inverse(R, X):
     """X = R^-1 for an upper-triangular R with a nonzero diagonal (X may not be R)."""
     n = R.shape[0]

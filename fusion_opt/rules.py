@@ -83,7 +83,7 @@ from scipy.linalg import lapack
 
 from .assemble import all_finite, fuse_at
 from .factored import factor, work
-from .linalg import cholesky, jit, lower_inverse, matmul
+from .linalg import cholesky, jit, lower_inverse, lower_solve, matmul
 from .prepare import MAX_CONDITION, scaled
 from .results import FusionInputError, FusionSolverError, Status
 from .validation import SYMMETRY_RTOL, finite_array
@@ -384,7 +384,7 @@ def _pencil(S, L, T, Tinv):
             return np.zeros(n)
     lower_inverse(L[1], Tinv)  # L_b^-1, then overwritten
     M = np.empty((n, n))
-    matmul(Tinv, L[0], M)
+    lower_solve(L[1], L[0], M)  # exactly I for equal covariances (ties stay ties)
     U, sigma, _ = np.linalg.svd(M)
     matmul(L[1], U, T)
     Lbi = Tinv.copy()

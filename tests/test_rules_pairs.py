@@ -14,6 +14,8 @@ from test_rules_exact import DIGITS, decimal, det, eigh2, exact, inv, to_float
 import fusion_opt as fo
 from fusion_opt.rules import RULES
 
+EPS = np.finfo(float).eps
+
 T_ISSUE = np.array([[1.0, 0.3], [0.2, 1.0]])
 M_ISSUE = np.array([[1.0, -1.0], [-0.5, 2.0]])
 
@@ -224,3 +226,20 @@ def test_ei_hand_computed():
     np.testing.assert_allclose(e.mean, [1.0, 5.0], rtol=1e-15)
     tie = RULES["ei"](np.array([[1.0, 2.0], [3.0, 5.0]]), np.stack([np.eye(2)] * 2), "trace")
     np.testing.assert_allclose(tie.mean, [2.0, 3.5], rtol=1e-15)  # a tie: the average
+
+
+@pytest.mark.parametrize("n", [3, 4, 6])
+def test_equal_covariances_are_an_exact_tie_in_every_dimension(n):
+    """P_a = P_b: the pencil L_b^-1 L_a is exactly I (a triangular solve, as LAPACK's; the
+    product with L_b^-1 was I to a few eps, so EI's tie rule gave the loser a share of
+    0.08-0.4 instead of 1/2, and ICI picked an end by rounding). EI then splits every axis
+    in half, ICI keeps node a (f is flat; its search stops at w = 0)."""
+    rng = np.random.default_rng(n)
+    P = spd(rng, n)
+    means, covs = rng.standard_normal((2, n)), np.stack([P, P])
+    e = fo.fuse(means, covs, method="ei")
+    np.testing.assert_array_equal(e.weights, [0.5, 0.5])
+    np.testing.assert_allclose(e.mean, means.mean(axis=0), rtol=0, atol=4 * EPS)
+    i = fo.fuse(means, covs, method="ici")
+    np.testing.assert_array_equal(i.weights, [1.0, 0.0])
+    np.testing.assert_array_equal(i.mean, means[0])
