@@ -3,11 +3,16 @@
 The store holds the configuration the study runs with (so `report` needs no flags) and,
 per run, its result, the figure data of the run the figures show, and its compute time;
 and the SHA-256 of each measurement file a run wrote beside it (a benchmark's timings).
-Every row carries a SHA-256 checksum of its content; opening a store verifies every row
-and refuses one that does not verify, with one line. Only a missing file is a new store:
-an empty, truncated or foreign file is refused, never read as new. A store of another
-configuration is refused too, unless it holds no runs (then the new configuration
-replaces the old one, so a failed first attempt never blocks the corrected one).
+Every row carries a SHA-256 checksum of its content, and a ledger record the count and the
+XOR of the digests of the stored runs (updated in the transaction that adds a run), so a
+deleted or copied-in row is seen; opening a store verifies every row, the ledger and that
+the file holds nothing beyond its SQLite pages, and refuses one that does not verify, with
+one line. A journal left by a process killed while it committed is rolled back on
+opening (SQLite's recovery: the runs committed before it are kept). Only a missing file
+is a new store: an empty, truncated or foreign file is refused, never read as new. A
+store of another configuration is refused too, unless it holds no runs (then the new
+configuration replaces the old one, so a failed first attempt never blocks the corrected
+one).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import numpy as np
 
 from .config import config_hash
 
-SCHEMA = "fusion-opt studies store 2"
+SCHEMA = "fusion-opt studies store 3"
 _TABLES = (
     "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL, checksum TEXT NOT NULL)",
     "CREATE TABLE runs (idx INTEGER PRIMARY KEY, result TEXT NOT NULL, figure TEXT, "
@@ -58,6 +63,15 @@ def verify_files(folder: Path, digests: dict) -> None:
 
 def _checksum(*fields) -> str:
     return hashlib.sha256(json.dumps(fields).encode()).hexdigest()
+
+
+def _ledger(rows, start: dict | None = None) -> dict:
+    """The ledger of start (none: of no runs) with rows [(idx, checksum)] added: their
+    count and the XOR of their SHA-256 digests (hex), which no order changes."""
+    count, xor = (0, 0) if start is None else (start["runs"], int(start["xor"], 16))
+    for idx, checksum in rows:
+        xor ^= int(hashlib.sha256(f"{idx}:{checksum}".encode()).hexdigest(), 16)
+    return {"runs": count + len(rows), "xor": f"{xor:x}"}
 
 
 def _json(value) -> str:
@@ -116,7 +130,12 @@ class Store:
                              "it away or choose another --out") from None
 
     def _open(self, writable: bool) -> None:
-        mode = "rw" if writable else "ro"  # never creates a file
+        """Open the existing file (never creates one); read-write also where a journal lies
+        beside it, which SQLite rolls back only so (else: "attempt to write a readonly
+        database", fuzz I1), if the file is writable."""
+        journal = self.path.with_name(self.path.name + "-journal")
+        recover = journal.exists() and os.access(self.path, os.W_OK)
+        mode = "rw" if writable or recover else "ro"
         self._db = sqlite3.connect(f"file:{quote(str(self.path.resolve()))}?mode={mode}",
                                    uri=True)
 
@@ -134,6 +153,7 @@ class Store:
             self._set("config", config)
             self._set("wall_time_s", 0.0)
             self._set("invocations", 0)
+            self._set("ledger", _ledger([]))
         self._db.close()
         os.replace(new, self.path)
         self._open(writable=True)
@@ -143,7 +163,22 @@ class Store:
         raise StoreError(f"{self.path}: {what}; move it away or choose another --out")
 
     def _verify(self) -> None:
-        """The file must be a store of this schema, and every row match its checksum."""
+        """The file must be a store of this schema, hold nothing beyond its pages, every row
+        must match its checksum and the runs the ledger; read in one transaction, so that
+        a run committed meanwhile is seen whole or not at all."""
+        self._db.execute("BEGIN")
+        try:
+            self._verify_rows()
+        finally:
+            self._db.execute("COMMIT")
+
+    def _verify_rows(self) -> None:
+        pages = [self._db.execute(f"PRAGMA {p}").fetchone()[0] for p in ("page_size",
+                                                                         "page_count")]
+        extra = self.path.stat().st_size - pages[0] * pages[1]
+        if extra != 0:
+            self._refuse(f"has {abs(extra)} bytes {'beyond' if extra > 0 else 'missing from'} "
+                         "its SQLite pages (the file was changed or damaged)")
         tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master")}
         if not {"meta", "runs"} <= tables:
             self._refuse("is empty or not a study store (no meta and runs tables)")
@@ -157,14 +192,21 @@ class Store:
                 self._refuse(f"its {key!r} record does not match its checksum (the store was "
                              "changed or damaged)")
             meta[key] = value
-        for key in ("config", "wall_time_s", "invocations"):
+        for key in ("config", "wall_time_s", "invocations", "ledger"):
             if key not in meta:
                 self._refuse(f"lacks its {key!r} record")
+        rows = []
         for idx, result, figure, seconds, checksum in self._db.execute(
                 "SELECT idx, result, figure, seconds, checksum FROM runs"):
             if _checksum("run", idx, result, figure, seconds) != checksum:
                 self._refuse(f"run {idx} does not match its checksum (the store was changed "
                              "or damaged)")
+            rows.append((idx, checksum))
+        recorded = json.loads(meta["ledger"])
+        if _ledger(rows) != recorded:
+            self._refuse(f"holds {len(rows)} run(s) where its ledger records "
+                         f"{recorded['runs']}, or other ones (a run was deleted or added "
+                         "outside the studies)")
         self.config = json.loads(meta["config"])
 
     def _claim(self, config: dict, write: bool) -> None:
@@ -203,10 +245,13 @@ class Store:
         figure_text = None if figure is None else _json(figure)
         row = (index, result_text, figure_text, float(seconds))
 
+        checksum = _checksum("run", *row)
+
         def insert():
             with self._db:
-                self._db.execute("INSERT INTO runs VALUES (?, ?, ?, ?, ?)",
-                                 (*row, _checksum("run", *row)))
+                self._db.execute("INSERT INTO runs VALUES (?, ?, ?, ?, ?)", (*row, checksum))
+                ledger = self._get("ledger")
+                self._set("ledger", _ledger([(index, checksum)], ledger))
         self._guard(insert)
 
     def results(self, runs: int) -> dict[int, dict]:

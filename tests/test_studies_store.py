@@ -5,6 +5,8 @@ import json
 import re
 import shutil
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -107,9 +109,54 @@ def test_a_truncated_or_overwritten_file_is_refused(tmp_path, cut):
     path = _filled(tmp_path)
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * cut)])
-    _refused(path, "not a usable study store|does not match its checksum")
+    _refused(path, "not a usable study store|does not match its checksum|bytes missing from "
+                   "its SQLite pages")
     path.write_bytes(b"this is not sqlite" * 100)
     _refused(path, "not a usable study store")
+
+
+def test_bytes_appended_to_the_file_are_refused(tmp_path):
+    """SQLite reads a file by its pages and ignores what follows them (fuzz I2: a store
+    with garbage appended was read as intact)."""
+    path = _filled(tmp_path)
+    with path.open("ab") as f:
+        f.write(b"garbage")
+    _refused(path, "has 7 bytes beyond its SQLite pages")
+
+
+def test_a_deleted_or_copied_in_run_is_refused(tmp_path):
+    """Each row verifies alone, so a deleted one made the store look unfinished (fuzz I11);
+    the ledger counts and hashes the runs, so it is seen, as is a row copied in from
+    another store of the same configuration."""
+    path = _filled(tmp_path)
+    _tamper(path, "DELETE FROM runs WHERE idx = 1")
+    _refused(path, r"holds 2 run\(s\) where its ledger records 3, or other ones")
+    path = _filled(tmp_path / "b", runs=2)
+    other = _filled(tmp_path / "c", runs=3)
+    with sqlite3.connect(path) as con:
+        con.execute("ATTACH ? AS other", (str(other),))
+        con.execute("INSERT INTO runs SELECT * FROM other.runs WHERE idx = 2")
+    _refused(path, r"holds 3 run\(s\) where its ledger records 2")
+
+
+def test_a_journal_left_by_a_killed_commit_is_rolled_back_not_refused(tmp_path):
+    """A process killed while it committed a run leaves a hot journal; SQLite rolls it back
+    only on a read-write connection, and the store was refused ("attempt to write a
+    readonly database", fuzz I1) by report and by a run that would resume it."""
+    path = _filled(tmp_path)
+    code = ("import os, sqlite3, sys\n"
+            "db = sqlite3.connect(sys.argv[1], isolation_level=None)\n"
+            "db.execute('PRAGMA cache_size=1'); db.execute('BEGIN')\n"
+            "db.execute(\"INSERT INTO runs VALUES (99, ?, NULL, 1.0, 'x')\", ('x' * 300000,))\n"
+            "os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True)
+    assert path.with_name(path.name + "-journal").exists()
+    store = Store(path)
+    assert store.done() == {0, 1, 2} and store.results(3)[2] == {"row": {"mse": 3.25}}
+    store.close()
+    store = Store(path, CONFIG)  # and a run resumes it
+    assert store.done() == {0, 1, 2}
+    store.close()
 
 
 def test_a_store_of_an_older_version_is_refused(tmp_path):
