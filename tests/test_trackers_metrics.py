@@ -201,3 +201,26 @@ def test_metrics_refuse_what_float64_cannot_give(call, match):
     """Regression: each returned NaN, inf, a negative NEES or a LinAlgError."""
     with pytest.raises(FusionInputError, match=match):
         call()
+
+
+@pytest.mark.parametrize("c", [10.0, 1e155, 1e200, 1e300])
+@pytest.mark.parametrize("p", [1.0, 2.0, 3.0])
+def test_ospa_and_gospa_with_a_cutoff_far_above_the_distances(c, p):
+    """Fuzz I5: with c = 1e300, (d / c)^p underflowed to 0 and OSPA and GOSPA of two point
+    sets 4.5 m apart came back 0. Against brute force over the assignments, from the
+    distances themselves (all far below c and its powers)."""
+    rng = np.random.default_rng(int(np.log10(c)) + int(p))
+    X, Y = rng.normal(0, 3, (4, 2)), rng.normal(0, 3, (4, 2))
+    D = np.minimum(np.linalg.norm(X[:, None] - Y[None], axis=-1), c)
+    best = min(sum(D[i, j] ** p for i, j in enumerate(perm))
+               for perm in itertools.permutations(range(4)))
+    assert metrics.ospa(X, Y, c, p) == pytest.approx((best / 4) ** (1 / p), rel=1e-12)
+    assert metrics.gospa(X, Y, c, p) == pytest.approx(best ** (1 / p), rel=1e-12)
+    # one target more: the unassigned one costs c^p / 2 (alpha = 2), which dominates for
+    # the large c
+    Y5 = np.vstack([Y, [[1.0, 1.0]]])
+    D5 = np.minimum(np.linalg.norm(X[:, None] - Y5[None], axis=-1), c)
+    best5 = min(sum(D5[i, j] ** p for i, j in enumerate(perm))
+                for perm in itertools.permutations(range(5), 4))
+    assert metrics.gospa(X, Y5, c, p) == pytest.approx(
+        (best5 + c ** p / 2) ** (1 / p) if c < 1e100 else c * 0.5 ** (1 / p), rel=1e-12)

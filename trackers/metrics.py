@@ -195,14 +195,22 @@ def _point_sets(X, Y):
     return X, Y
 
 
-def _assignment_cost(X, Y, c, p) -> float:
-    """min over assignments of sum (d_c(x, y) / c)^p for the min(m, k) assigned pairs: in
-    units of c, so that no c and p reach beyond float64 (each term is in [0, 1])."""
-    if X.shape[0] == 0 or Y.shape[0] == 0:
-        return 0.0
-    C = np.minimum(_distances(X, Y) / c, 1.0) ** p
+def _assignment_cost(X, Y, c, p) -> tuple[float, float]:
+    """(u, S): S = min over assignments of sum (d_c(x, y) / u)^p over the min(m, k) assigned
+    pairs, in units u chosen so that no c, p or distance reaches beyond float64: u = c when
+    the sets differ in size (a term of 1 per unassigned point then dominates), else the
+    largest cut distance, so that the largest term is 1 and none underflows that matters
+    ((d / c)^p underflowed to 0 for c = 1e300, fuzz I5). u = 0 where every distance is."""
+    m, k = X.shape[0], Y.shape[0]
+    if m == 0 or k == 0:
+        return c, 0.0
+    D = np.minimum(_distances(X, Y), c)
+    u = c if m != k else float(D.max())
+    if u == 0.0:
+        return u, 0.0
+    C = (D / u) ** p
     r, s = linear_sum_assignment(C)
-    return float(C[r, s].sum())
+    return u, float(C[r, s].sum())
 
 
 def _distances(X, Y) -> np.ndarray:
@@ -224,8 +232,8 @@ def ospa(X, Y, c: float, p: float) -> float:
     m, k = sorted((X.shape[0], Y.shape[0]))
     if k == 0:
         return 0.0
-    total = _assignment_cost(X, Y, c, p) + (k - m)
-    return float(c * (total / k) ** (1.0 / p))
+    u, cost = _assignment_cost(X, Y, c, p)  # u = c where k > m
+    return float(u * ((cost + (k - m)) / k) ** (1.0 / p))
 
 
 def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
@@ -240,8 +248,8 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
     if alpha > 2:
         raise FusionInputError(f"alpha must be in (0, 2], got {alpha}")
     m, k = sorted((X.shape[0], Y.shape[0]))
-    total = _assignment_cost(X, Y, c, p) + (k - m) / alpha
-    return float(c * total ** (1.0 / p))
+    u, cost = _assignment_cost(X, Y, c, p)  # u = c where k > m
+    return float(u * (cost + (k - m) / alpha) ** (1.0 / p))
 
 
 def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
