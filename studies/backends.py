@@ -153,14 +153,24 @@ def check(config: dict) -> None:
 
 def _check_sizes(config: dict) -> None:
     """Every cell's problems, and each backend's fusion of them, within fusion_opt.limits
-    (a problem and its copies about 4 N n^2 doubles; a batch with its results about 6 B N
-    (n^2 + n)), before anything runs."""
-    cells = [(n, N, config["backends"]) for n in config["n"] for N in config["N"]]
-    cells += [(n, N, config["large_backends"]) for n, N in config["large"]]
-    for n, N, backends in cells:
-        configs.fits(f"n = {n}, N = {N}", 8.0 * 4 * N * n * n)
+    (a cell's K problems and their copies about 4 K N n^2 doubles; a batch with its
+    results about 6 B N (n^2 + n); a row per solver and problem, about 1 KB, kept to the
+    end), before anything runs."""
+    K, K_large = config["instances"], config["large_instances"]
+    cells = [(n, N, config["backends"], "instances", K) for n in config["n"]
+             for N in config["N"]]
+    cells += [(n, N, config["large_backends"], "large_instances", K_large)
+              for n, N in config["large"]]
+    for n, N, backends, name, k in cells:
+        configs.fits(f"n = {n}, N = {N} with {name} = {k}", 8.0 * 4 * k * N * n * n)
         for b in backends:
             configs.fusion_fits(f"n = {n}, N = {N} ({b})", n, N, b)
+    per_cell = len(config["criteria"]) * len(config["kinds"])
+    rows = per_cell * (len(config["n"]) * len(config["N"]) * K * (
+        len(config["backends"]) + len(config["peers"])) + len(config["large"]) * K_large
+        * len(config["large_backends"]))
+    configs.fits(f"instances = {K} and large_instances = {K_large} ({rows} rows of "
+                 "backends_instances.csv)", 1024.0 * rows)
     for n, N in config["batch_shapes"]:
         configs.fits(f"batch_shapes [{n}, {N}] with batch_size = {config['batch_size']}",
                      8.0 * 6 * config["batch_size"] * N * (n * n + n))

@@ -111,6 +111,12 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("backends", "batch_size = 1000000000000\n", "with batch_size = 1000000000000: about"),
     ("backends", "large = [[100000, 2]]\n", "n = 100000, N = 2: about"),
     ("backends", "batch_shapes = [[2, 100000000]]\n", "batch_shapes [2, 100000000] with"),
+    # fuzz I3: instances had no bound; a cell's problems are kept together (and a row per
+    # solver and problem to the end): n = 48, N = 64, 5,000 instances died in MemoryError
+    ("backends", "n = [48]\nN = [64]\ninstances = 5000\n",
+     "n = 48, N = 64 with instances = 5000: about"),
+    ("backends", "n = [2]\nN = [2]\ninstances = 3000000\n",
+     "instances = 3000000 and large_instances = 2 ("),
     # sizes beyond memory, refused at the check, not when a run allocates them
     ("table1", "[check]\nsteps = 100000000000\n",
      "check.steps must be an integer >= 0 and <= 960, got 100000000000"),
