@@ -106,10 +106,10 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("backends", "batch_check = 0\n", "batch_check must be an integer >= 1"),
     ("backends", 'backends = ["closed-form"]\nN = [3, 7]\n', "fuses N = 2 only"),
     # fuzz F4: each passed the check, made the output folder, then hit numpy's MemoryError
-    ("backends", "n = [1000000]\n", "n = 1000000, N = 2: about"),
-    ("backends", "N = [100000000]\n", "n = 2, N = 100000000: about"),
+    ("backends", "n = [1000000]\n", "n = 1000000, N = 2 with instances = 32: about"),
+    ("backends", "N = [100000000]\n", "n = 2, N = 100000000 with instances = 32: about"),
     ("backends", "batch_size = 1000000000000\n", "with batch_size = 1000000000000: about"),
-    ("backends", "large = [[100000, 2]]\n", "n = 100000, N = 2: about"),
+    ("backends", "large = [[100000, 2]]\n", "n = 100000, N = 2 with large_instances = 2: about"),
     ("backends", "batch_shapes = [[2, 100000000]]\n", "batch_shapes [2, 100000000] with"),
     # fuzz I3: instances had no bound; a cell's problems are kept together (and a row per
     # solver and problem to the end): n = 48, N = 64, 5,000 instances died in MemoryError
