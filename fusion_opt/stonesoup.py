@@ -85,13 +85,15 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
     if seconds is None:
         return None
     if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) \
-            or not np.isfinite(seconds):
+            or (isinstance(seconds, float | np.floating) and not np.isfinite(seconds)):
         raise FusionInputError(f"seconds must be a finite real number or None, got {seconds!r}")
     _check_epoch(epoch)
-    try:
+    try:  # an int beyond float64 (10**400) overflows in float(), as a date beyond 9999 does
         return epoch + timedelta(seconds=float(seconds))
-    except OverflowError:  # beyond datetime's years 1..9999
-        raise FusionInputError(f"seconds = {seconds!r} after {epoch} is beyond the dates a "
+    except OverflowError:
+        text = repr(seconds) if len(repr(seconds)) <= 24 else \
+            f"{repr(seconds)[:8]}... ({len(repr(seconds))} digits)"
+        raise FusionInputError(f"seconds = {text} after {epoch} is beyond the dates a "
                                "datetime holds (years 1 to 9999)") from None
 
 

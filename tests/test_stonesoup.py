@@ -92,6 +92,10 @@ def test_aware_timestamps_need_an_aware_epoch():
         fs.to_datetime(1.0, epoch="2024")
     with pytest.raises(fo.FusionInputError, match="seconds"):
         fs.to_datetime(float("nan"))
+    # fuzz I4: an int beyond float64 was a TypeError from numpy's isfinite
+    with pytest.raises(fo.FusionInputError, match=r"seconds = 10000000\.\.\. \(401 digits\) "
+                       r"after 1970-01-01 00:00:00 is beyond the dates a datetime holds"):
+        fs.to_datetime(10**400)
 
 
 # --- conversions -----------------------------------------------------------------------------
