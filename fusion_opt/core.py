@@ -47,7 +47,6 @@ from .limits import batch_bytes, conic_bytes, limits, working_bytes
 from .prepare import (
     ASYMMETRIC,
     COVS_NONFINITE,
-    MAX_CONDITION,
     MEANS_NONFINITE,
     NOT_PD,
     SPREAD,
@@ -56,7 +55,7 @@ from .prepare import (
 from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
 from .scaling import conic_data
 from .simplex import to_simplex
-from .validation import CRITERIA, SYMMETRY_RTOL, real_array, symmetrised
+from .validation import CRITERIA, SYMMETRY_RTOL, definiteness_error, real_array, symmetrised
 
 DEFAULT_BACKEND = "newton"
 # A result is OPTIMAL when its certificate proves f(w) - f* <= OPTIMAL_RTOL |f| ("trace";
@@ -590,16 +589,7 @@ def _input_error(code, where, means, covs, names, batch, E) -> FusionInputError:
             f"{names.of('covs', i, problem)} is not symmetric: max |P - P^T| = {asym:.3g} "
             f"exceeds {SYMMETRY_RTOL:g} x max |P| = {np.abs(P).max():.3g}")
     if code == NOT_PD:
-        with np.errstate(all="ignore"):
-            eig = np.linalg.eigvalsh(symmetrised(P))
-        if eig[0] > 0.0:
-            return FusionInputError(
-                f"{names.of('covs', i, problem)} is numerically singular: eigenvalues "
-                f"{eig[0]:.3g} to {eig[-1]:.3g} (condition {eig[-1] / eig[0]:.3g}); a "
-                f"covariance is refused above a condition estimate |P|_F |P^-1|_F of "
-                f"{MAX_CONDITION:.3g}, where its Cholesky pivots are of rounding size")
-        return FusionInputError(f"{names.of('covs', i, problem)} is not positive definite "
-                                f"(smallest eigenvalue {eig[0]:.3g})")
+        return definiteness_error(names.of('covs', i, problem), symmetrised(P))
     assert code == SPREAD
     where_b = "" if problem is None else f" of problem {b}"
     if E[b].any():  # MBCI's scales s_i, not the covariances, make the spread

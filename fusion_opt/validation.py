@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .linalg import cholesky, jit
-from .prepare import SYMMETRY_RTOL, asymmetric
+from .prepare import MAX_CONDITION, SYMMETRY_RTOL, asymmetric
 from .results import FusionInputError
 
 CRITERIA = ("trace", "logdet")
@@ -165,12 +165,35 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
             f"{name} of {where} is not symmetric: max |P - P^T| = "
             f"{np.abs(P - P.T).max():.3g} exceeds {SYMMETRY_RTOL:g} x max |P| = "
             f"{np.abs(P).max():.3g}")
-    if code == _NOT_PD:  # eigenvalues of S[k] scaled into range (entries up to 1.8e308)
-        e = int(np.frexp(np.abs(sym[k]).max())[1])
-        eig = np.ldexp(np.linalg.eigvalsh(np.ldexp(sym[k], -e)).min(), e)
-        raise FusionInputError(f"{name} of {where} is not positive definite "
-                               f"(smallest eigenvalue {eig:.3g})")
+    if code == _NOT_PD:
+        raise definiteness_error(f"{name} of {where}", sym[k])
     return sym.reshape(covs.shape)
+
+
+def definiteness_error(label: str, S: np.ndarray) -> FusionInputError:
+    """Why the symmetric S (n, n), which failed a Cholesky factorisation or the condition
+    limit, is refused, from its extreme eigenvalues, computed on S scaled by the power of
+    two of its largest entry (exact: entries near 1e308 or subnormal stay in range): not
+    positive definite where the smallest is negative beyond n eps of the largest;
+    numerically singular where it is 0 or negative within that (eigenvalues 1e-300 and
+    1e300, the smallest computed as 0, were reported as "not positive definite", fuzz I6)
+    or positive with a condition beyond the limit."""
+    e = int(np.frexp(np.abs(S).max())[1])
+    with np.errstate(all="ignore"):
+        eig = np.ldexp(np.linalg.eigvalsh(np.ldexp(S, -e)), e)
+    lo, hi, tol = eig[0], eig[-1], len(eig) * np.finfo(float).eps * eig[-1]
+    if not hi > 0.0 or lo < -tol:
+        return FusionInputError(f"{label} is not positive definite (smallest eigenvalue "
+                                f"{lo:.3g})")
+    if lo <= 0.0:
+        return FusionInputError(f"{label} is numerically singular: its smallest eigenvalue, "
+                                f"{lo:.3g}, is within float64's rounding of 0 beside its "
+                                f"largest, {hi:.3g}")
+    return FusionInputError(
+        f"{label} is numerically singular: eigenvalues {lo:.3g} to {hi:.3g} (condition "
+        f"{hi / lo:.3g}); a covariance is refused above a condition estimate "
+        f"|P|_F |P^-1|_F of {MAX_CONDITION:.3g}, where its Cholesky pivots are of rounding "
+        "size")
 
 
 _ASYMMETRIC, _NOT_PD = 1, 2

@@ -273,6 +273,27 @@ def test_a_node_of_condition_beyond_the_limit_is_refused_at_once():
         fo.bci(np.zeros((1000, 3)), covs)
 
 
+def test_a_refused_covariance_is_called_singular_or_indefinite_as_it_is():
+    """Fuzz I6: diag(1e-300, 1e300) is positive definite, but its smallest eigenvalue,
+    scaled to its largest, is 0 in float64: it is numerically singular, not "not positive
+    definite (smallest eigenvalue 0)"; an indefinite one is called so, by fusion and by an
+    Estimates alike."""
+    wide = np.array([np.diag([1e-300, 1e300]), np.eye(2)])
+    singular = (r"covs of (node|estimate) 0.* is numerically singular: its smallest "
+                r"eigenvalue, 0, is within float64's rounding of 0 beside its largest, 1e\+300")
+    with pytest.raises(fo.FusionInputError, match=singular):
+        fo.bci(np.zeros((2, 2)), wide)
+    with pytest.raises(fo.FusionInputError, match=singular):
+        fo.Estimates(np.zeros((2, 2)), wide)
+    indefinite = np.array([[[1.0, 2.0], [2.0, 1.0]], np.eye(2)])
+    with pytest.raises(fo.FusionInputError, match=r"covs of node 0 is not positive definite "
+                                                  r"\(smallest eigenvalue -1\)"):
+        fo.bci(np.zeros((2, 2)), indefinite)
+    with pytest.raises(fo.FusionInputError, match=r"is not positive definite \(smallest "
+                                                  r"eigenvalue -1\)"):
+        fo.Estimates(np.zeros((2, 2)), indefinite)
+
+
 @pytest.mark.parametrize("method", ["bci", "naive"])
 def test_a_batch_beyond_memory_is_refused_before_anything_is_copied(method):
     """Regression: fuse_batch of 10^8 broadcast problems copied 3 GB for 7.5 s, then raised

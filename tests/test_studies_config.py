@@ -178,7 +178,7 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("nnode", "[dynamic]\ndt = 1e30\n", "dynamic.r = 0.05: dt = 1e+30 is too long a step"),
     ("nnode", "[dynamic]\nr = 1e-30\n", "dynamic.r = 1e-30, dynamic.steps = 200: the "
      "covariance of a node detecting at every step or of one never detecting is not one a "
-     "fusion accepts: covs of node 0 is not positive definite"),
+     "fusion accepts: covs of node 0 is numerically singular"),
     ("nnode", "[dynamic]\nq = 1e30\n", "dynamic.q = 1e+30, dynamic.r = 0.05, dynamic.steps"),
     ("nnode", "[dynamic]\ndt = 1e-8\nburn_in = 0\n", "dynamic.burn_in = 0: even two nodes "
      "that detect at every step keep linearly dependent errors"),
