@@ -301,6 +301,9 @@ GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
     (["a", "b"], dict(method="magic"), "method must be one of"),
     (["a", "b"], dict(method="known-cross"), "cross-covariances"),
     (["a", "b", "c"], dict(method="ci", p_detect=None), "'ci' fuses pairs.*3 sources"),
+    # fuzz I12: accepted, then refused at the first group of three
+    (["a", "b", "c"], dict(method="bci", backend="closed-form"),
+     "backend 'closed-form' fuses pairs, but 3 sources can form larger groups"),
     (["a", "b"], dict(criterion="max"), "criterion"),
     (["a", "b"], dict(backend="magic"), "backend"),
     (["a", "b"], dict(association="magic"), "association method"),
@@ -361,3 +364,24 @@ def test_a_step_refused_for_its_time_changes_nothing():
     with pytest.raises(fo.FusionInputError, match="time must be a finite real number"):
         node.step({"a": est(100.0, 20), "b": est(100.0, 20)}, time=float("nan"))
     assert node.step({"a": est(300.0, 50), "b": est(300.0, 50)}).ids.tolist() == [1]
+
+
+def test_a_failed_group_of_many_sources_is_named_in_a_line_of_reasonable_length():
+    """Fuzz I13: a group of 2,000 sources that failed to fuse listed every member, 78,000
+    characters before the reason; now its first three and last two, and the count between."""
+    sources = [f"s{i}" for i in range(2000)]
+    e = fo.Estimates(np.zeros((1, 2)), np.eye(2)[None])
+    node = fo.ProcessingNode(sources, method="bci", threshold=1.0)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(processing, "fuse_batch", _refuse)
+        m.setattr(processing, "fuse", _refuse)
+        with pytest.raises(fo.FusionInputError) as err:
+            node.step(dict.fromkeys(sources, e))
+    message = str(err.value)
+    assert len(message) < 400
+    assert "source 's2' track 0 (node 2) with 1995 more with source 's1998'" in message
+    assert message.endswith("refused for the test")
+
+
+def _refuse(*args, **kwargs):
+    raise fo.FusionInputError("refused for the test")
