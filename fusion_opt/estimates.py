@@ -152,6 +152,16 @@ def _refuse_range(values) -> None:
                            f"got {_beyond_int64(values)!r}")
 
 
+def check_forward(time: float | None, last: float | None, name: str = "time") -> None:
+    """Refuse a step stamped before the previous one (times as floats, None: not stamped):
+    the trackers predict forward and the processing nodes continue tracks forward, so data
+    out of time order would be fused as if in order (fuzz I10)."""
+    if time is not None and last is not None and time < last:
+        raise FusionInputError(f"{name} = {time!r} is before the previous step's, {last!r}: "
+                               "steps go forward in time (data out of order is not "
+                               "supported)")
+
+
 def check_time(time) -> float | None:
     """A time stamp: None or a finite real number, as a float."""
     if time is None:

@@ -25,8 +25,9 @@ fixed at construction) and a cycle is refused. Each step:
   next step);
 - time: trackers stamp their own estimates; `time`, when given, is passed to every
   processing node, which stamps its fused estimates with it; without it each processing
-  node takes the common time of its reports. A processing node built without a name has
-  its fused Estimates stamped with its name in the network.
+  node takes the common time of its reports; `run`'s times, a tracker's and a node's must
+  not go back (data out of order is not supported). A processing node built without a
+  name has its fused Estimates stamped with its name in the network.
 
 `step` returns the Estimates of every node that reported; `run` returns each node's
 Estimates in step order (one per step at which it reported: one per step when every
@@ -44,7 +45,7 @@ import dataclasses
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any, Protocol
 
-from .estimates import Estimates, check_time
+from .estimates import Estimates, check_forward, check_time
 from .processing import ProcessingNode
 from .results import FusionInputError, FusionSolverError, in_context
 
@@ -101,6 +102,8 @@ class Network:
         if times is not None and len(times) != len(scan_series):
             raise FusionInputError(f"times must have one entry per step ({len(scan_series)}), "
                                    f"got {len(times)}")
+        for t in range(1, 0 if times is None else len(times)):  # before any node steps
+            check_forward(times[t], times[t - 1], f"times[{t}]")
         series = {name: [] for name in (*self.trackers, *self.order)}
         for t, scans in enumerate(scan_series):
             for name, estimates in self.step(scans, None if times is None else times[t]).items():

@@ -30,7 +30,8 @@ Each step:
 A source whose report is missing contributes nothing that step. The fused `Estimates`
 are ordered by id, stamped `node=name` and with `time`: the step's `time` if given, else
 the common time of the reports (reports of different times are refused: pass `time=`
-to fuse them anyway). `groups` holds the last step's groups by fused id: which source
+to fuse them anyway); a time before the last step's is refused (tracks go forward; data
+out of order is not supported). `groups` holds the last step's groups by fused id: which source
 tracks each fused track came from.
 """
 
@@ -46,7 +47,7 @@ import numpy as np
 from .association import Group, associate, check_dims, check_method, check_threshold
 from .backends import BACKENDS
 from .batch import fuse_batch
-from .estimates import Estimates, check_time
+from .estimates import Estimates, check_forward, check_time
 from .fusion import fuse
 from .results import FusionInputError, FusionSolverError, in_context
 from .validation import finite_real, hashable
@@ -96,12 +97,13 @@ class ProcessingNode:
         self._steps = 0
         self._next_id = 0
         self._n: int | None = None
+        self._time: float | None = None  # stamped on the last step
 
     def step(self, reports: Mapping[Hashable, Estimates], time: float | None = None
              ) -> Estimates:
         """Fused estimates of this step from reports {source: Estimates} (module docstring)."""
         reports = self._check_reports(reports)
-        time = self._time(reports, time)
+        time = self._step_time(reports, time)
         groups = [g for g in associate(reports, self.threshold, self.association, self.dims)
                   if len(g) >= self.min_sources]
         means, covs = self._fuse(groups)
@@ -110,6 +112,7 @@ class ProcessingNode:
         fused = Estimates(means[order], covs[order], ids[order], time, self.name)
         self.groups = {int(ids[i]): groups[i] for i in order}
         self._remember(fused)
+        self._time = self._time if time is None else time
         return fused
 
     def _fuse(self, groups: list[Group]) -> tuple[np.ndarray, np.ndarray]:
@@ -315,17 +318,21 @@ class ProcessingNode:
         self._n = n
         return ordered
 
-    def _time(self, reports: dict[Hashable, Estimates], time) -> float | None:
-        if time is not None:  # checked before anything changes
-            try:
-                return check_time(time)
-            except FusionInputError as exc:
-                raise self._err(str(exc)) from None
-        times = {s: r.time for s, r in reports.items() if r.time is not None}
-        if len(set(times.values())) > 1:
-            raise self._err(f"reports carry different times {times}; pass time= to stamp "
-                            f"the fused estimates")
-        return next(iter(times.values()), None)
+    def _step_time(self, reports: dict[Hashable, Estimates], time) -> float | None:
+        """time, or the reports' common time; not before the last step's (checked before
+        anything changes)."""
+        if time is None:
+            times = {s: r.time for s, r in reports.items() if r.time is not None}
+            if len(set(times.values())) > 1:
+                raise self._err(f"reports carry different times {times}; pass time= to "
+                                f"stamp the fused estimates")
+            time = next(iter(times.values()), None)
+        try:
+            time = check_time(time)
+            check_forward(time, self._time)
+        except FusionInputError as exc:
+            raise self._err(str(exc)) from None
+        return time
 
 
 class _Track(NamedTuple):

@@ -274,10 +274,42 @@ def test_time_is_the_given_one_or_the_reports_common_time():
     assert node.step({"a": e, "b": e}).time == 2.0
     assert node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]])}).time == 2.0
     assert node.step({"a": e}, time=5).time == 5.0
-    out = node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]], time=3.0)}, time=3.0)
-    assert out.time == 3.0 and out.node == "p"
+    out = node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]], time=3.0)}, time=6.0)
+    assert out.time == 6.0 and out.node == "p"
     with pytest.raises(fo.FusionInputError, match="'p'.*different times.*time="):
         node.step({"a": e, "b": fo.Estimates([[0.0]], [[[1.0]]], time=3.0)})
+
+
+def test_a_step_before_the_last_one_is_refused_and_changes_nothing():
+    """Fuzz I10: reports stamped before the previous step were fused as if in order, and
+    the fused track kept its id across; a node, a network's times and each tracker now
+    refuse a step back in time, naming it, before their state changes."""
+    e = lambda t: fo.Estimates([[0.0]], [[[1.0]]], time=t)  # noqa: E731
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0, name="p")
+    node.step({"a": e(10.0), "b": e(10.0)})
+    with pytest.raises(fo.FusionInputError, match=r"'p'.*time = 1.0 is before the previous "
+                                                  r"step's, 10.0: steps go forward in time"):
+        node.step({"a": e(1.0), "b": e(1.0)})
+    assert node.step({"a": e(10.0), "b": e(10.0)}).ids.tolist() == [0]  # equal time: fine
+    node.reset()
+    assert node.step({"a": e(1.0), "b": e(1.0)}).time == 1.0
+    tracker = _Reporter()
+    net = fo.Network({"a": tracker}, {"f": fo.ProcessingNode(["a"], threshold=1.0,
+                                                            method="bci")})
+    with pytest.raises(fo.FusionInputError, match=r"times\[2\] = 1.0 is before the previous "
+                                                  r"step's, 2.0"):
+        net.run([{"a": None}] * 3, times=[1.0, 2.0, 1.0])
+    assert tracker.steps == 0  # refused before any node stepped
+
+
+class _Reporter:
+    """A tracker that reports one estimate at 0 at every step."""
+
+    steps = 0
+
+    def step(self, scan, time=None):
+        self.steps += 1
+        return fo.Estimates([[0.0]], [[[1.0]]], time=time)
 
 
 def test_no_reports_gives_no_estimates_once_n_is_known():

@@ -71,3 +71,16 @@ def test_refused_step_leaves_the_tracker_unchanged(kind, scan, time, match):
 def test_unhashable_name_is_refused_at_construction(kind):
     with pytest.raises(FusionInputError, match="name must be hashable"):
         make(kind, name=["a"])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_step_back_in_time_is_refused_and_changes_nothing(kind):
+    """Fuzz I10: time 1 after time 5 was stamped as given; each filter predicts its model's
+    dt forward at every step, so it is refused, before the state changes."""
+    f = make(kind)
+    f.step([[0.3, -0.2]], time=5.0)
+    with pytest.raises(FusionInputError, match=r"time = 1.0 is before the previous step's, "
+                                               r"5.0: steps go forward in time"):
+        f.step([[0.31, -0.2]], time=1.0)
+    assert f.steps == 1
+    assert f.step([], time=5.0).time == 5.0  # the same time again is a step forward of 0

@@ -15,6 +15,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt import validation as _fo
+from fusion_opt.estimates import check_forward
 from fusion_opt.limits import fits  # noqa: F401 (the trackers call _checks.fits)
 
 
@@ -107,9 +108,12 @@ def node_name(value):
     return value
 
 
-def step_time(value) -> float | None:
-    """The time stamped on a step's Estimates: None or a finite real number."""
-    return None if value is None else finite("time", value)
+def step_time(value, last: float | None) -> float | None:
+    """The time stamped on a step's Estimates: None or a finite real number, not before
+    last, the time stamped on the previous step (None: none was)."""
+    time = None if value is None else finite("time", value)
+    check_forward(time, last)
+    return time
 
 
 def read_only(a: np.ndarray) -> np.ndarray:

@@ -211,7 +211,7 @@ class KalmanFilter:
         self._m, self._P = check_prior(model, m0, P0)
         self.model = model
         self.name = _checks.node_name(name)
-        self._steps = 0
+        self._steps, self._time = 0, None
 
     @property
     def mean(self) -> np.ndarray:
@@ -238,8 +238,9 @@ class KalmanFilter:
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, update with every measurement of ``scan`` (k, d), report (id 0)."""
-        time = _checks.step_time(time)
+        time = _checks.step_time(time, self._time)
         self._advance(_checks.scan("scan", scan, self.model.d))
+        self._time = self._time if time is None else time
         return Estimates(self._m[None], self._P[None], None, time, self.name)
 
 

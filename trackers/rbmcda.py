@@ -388,7 +388,7 @@ class RBMCDA:
             _checks.positive("lifetime_scale", lifetime_scale),
             _checks.probability("resample_threshold", resample_threshold) * N)
         self.name = _checks.node_name(name)
-        self._state = initial_state(m0, P0, N)
+        self._state, self._time = initial_state(m0, P0, N), None
         self._last = RBMCDAReport(np.zeros(0, dtype=np.int64), np.zeros((0, model.n)),
                                   np.zeros((0, model.n, model.n)), float(N), 0.0, False)
 
@@ -434,10 +434,11 @@ class RBMCDA:
     def step(self, scan, time=None) -> Estimates:
         """Predict, draw deaths, associate every measurement of ``scan`` (k, d), report the
         MAP particle's targets with their ids."""
-        time = _checks.step_time(time)
+        time = _checks.step_time(time, self._time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         if time is None:
             time = self._state.k * self.params.dt
+        self._time = time
         return Estimates(r.means, r.covs, r.ids, time, self.name)
 
 

@@ -180,6 +180,7 @@ class RBPF:
                                 np.broadcast_to(P0, (N, model.n, model.n)).copy(),
                                 np.full(N, -np.log(N)))
         self._steps, self._ess, self._resampled = 0, float(N), False
+        self._time = None  # stamped on the last step
 
     @property
     def means(self) -> np.ndarray:
@@ -223,8 +224,9 @@ class RBPF:
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, associate every measurement of ``scan`` (k, d), report (id 0)."""
-        time = _checks.step_time(time)
+        time = _checks.step_time(time, self._time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
+        self._time = self._time if time is None else time
         return Estimates(r.mean[None], r.cov[None], None, time, self.name)
 
 
