@@ -56,7 +56,7 @@ def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=No
     name, value = ("chi", chi) if growth is None else ("growth", growth)
     p = real_array(p_detect, "p_detect")
     v = real_array(value, name) if (chi is None) != (growth is None) else None
-    N, lead = _layout(p, v, n_nodes)
+    N, lead = _layout(p, (name, v), n_nodes)
     if lead is None:
         _refuse(p_detect, chi, n_nodes, growth)
     q, E = np.empty((*lead, N)), np.empty((*lead, N), dtype=np.int64)
@@ -73,12 +73,13 @@ def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=No
     return q, E
 
 
-def _layout(p, v, n_nodes) -> tuple[int, tuple | None]:
-    """(N, the leading shape of the broadcast) of p and v, each a scalar or (..., N); lead
-    None when chi or growth is missing, N or a shape is wrong, or they do not broadcast
-    (`_checked` says which)."""
+def _layout(p, named_v, n_nodes) -> tuple[int, tuple | None]:
+    """(N, the leading shape of the broadcast) of p and v, named_v = (its name, v), each a
+    scalar or (..., N); lead None when chi or growth is missing, N or a shape is wrong, or
+    they do not broadcast (`_checked` says which)."""
+    v = named_v[1]
     if n_nodes is None:
-        n_nodes = next((x.shape[-1] for x in (p, v) if x is not None and x.ndim), 1)
+        n_nodes = _inferred(("p_detect", p), named_v)
     N = _node_count(n_nodes)
     if v is None or any(x.ndim and x.shape[-1] != N for x in (p, v)):
         return N, None
@@ -154,8 +155,8 @@ def _checked(p_detect, chi, n_nodes, growth) -> tuple[np.ndarray, np.ndarray]:
     """(p, chi) checked and broadcast to (..., N)."""
     chi = _chi(chi, growth)
     if n_nodes is None:
-        shapes = [np.shape(x) for x in (p_detect, chi) if np.ndim(x)]
-        n_nodes = shapes[0][-1] if shapes else 1
+        n_nodes = _inferred(("p_detect", p_detect), ("chi" if growth is None else "growth",
+                                                     chi))
     n_nodes = _node_count(n_nodes)
     return check_detection(p_detect, chi, n_nodes, "growth" if growth is not None else "chi")
 
@@ -182,6 +183,19 @@ def _chi(chi, growth):
         raise FusionInputError(f"growth must be >= 1 (the covariance grows over a miss), got "
                                f"{g[bad].ravel()[0]}")
     return 1.0 / g
+
+
+def _inferred(*named) -> int:
+    """N from the last axis of the first (name, value) that is not a scalar (1 if none
+    is), refusing an empty one by its name (it was blamed on n_nodes, which the caller had
+    not given: fuzz I8)."""
+    for name, x in named:
+        if x is not None and np.ndim(x):
+            if np.shape(x)[-1] == 0:
+                raise FusionInputError(f"{name} must hold one value per node, got shape "
+                                       f"{np.shape(x)} (no node)")
+            return np.shape(x)[-1]
+    return 1
 
 
 def _node_count(n_nodes) -> int:

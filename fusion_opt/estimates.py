@@ -111,12 +111,12 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
     """Integer track ids (m,) as int64, unique unless told; arange(m) when None."""
     if ids is None:
         return np.arange(m, dtype=np.int64)
+    if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
+            _beyond_int64(ids) is not None:  # named exactly, before floats round them
+        _refuse_range(ids)
     try:
         a = real_array(ids, "ids")
     except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
-        if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
-                _beyond_int64(ids) is not None:  # beyond int64 they make an object array
-            _refuse_range(ids)
         raise FusionInputError(f"ids must be integers (map other track names to integers): "
                                f"{exc}") from None
     if np.asarray(ids).dtype.kind in "iu":

@@ -31,6 +31,7 @@ does not.
 
 from __future__ import annotations
 
+import itertools
 import numbers
 from collections.abc import Hashable, Iterable, Mapping
 from datetime import datetime, timedelta
@@ -56,6 +57,7 @@ from .validation import hashable, real_array
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]
 
+_INT64_MAX = 2**63 - 1
 EPOCH = datetime(1970, 1, 1)
 CRITERIA = ("trace", "logdet")
 # The Chernoff innovation covariance A / (1 - omega) + B / omega is unbounded at omega = 0 or 1,
@@ -107,8 +109,10 @@ def _check_epoch(epoch) -> None:
 class TrackIds:
     """A one-to-one map between Stone Soup track ids (strings) and Estimates ids (integers).
 
-    A Stone Soup id seen first gets the next free integer (0, 1, 2, ...); an integer seen first
-    (an Estimates made by fusion-opt, turned into Tracks) gets the string str(id). Keep one
+    A Stone Soup id seen first gets the next free integer (0, 1, 2, ..., one past the largest
+    bound, or the smallest unbound one once that would pass int64, which Estimates' ids
+    are); an integer seen first (an Estimates made by fusion-opt, turned into Tracks) gets
+    the string str(id), and must fit int64. Keep one
     TrackIds per source to keep its ids persistent across steps and round trips.
     """
 
@@ -122,7 +126,9 @@ class TrackIds:
         if not hashable(track_id):
             raise FusionInputError(f"track id {track_id!r} must be hashable (a string)")
         if track_id not in self._to_int:
-            self._bind(track_id, self._next)
+            free = self._next if self._next <= _INT64_MAX else \
+                next(i for i in itertools.count() if i not in self._to_str)
+            self._bind(track_id, free)
         return self._to_int[track_id]
 
     def track_id(self, int_id: int) -> Hashable:
@@ -130,6 +136,9 @@ class TrackIds:
         if isinstance(int_id, bool) or not isinstance(int_id, numbers.Integral):
             raise FusionInputError(f"int_id must be an integer, got {int_id!r}")
         int_id = int(int_id)
+        if not -_INT64_MAX - 1 <= int_id <= _INT64_MAX:  # fuzz I9: refused later, unnamed
+            raise FusionInputError(f"int_id must fit in a signed 64-bit integer (as Estimates' "
+                                   f"ids), got {int_id}")
         if int_id not in self._to_str:
             self._bind(str(int_id), int_id)
         return self._to_str[int_id]

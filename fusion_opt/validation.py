@@ -103,6 +103,9 @@ def real_array(x, name: str) -> np.ndarray:
         a = np.asarray(x)
     except (TypeError, ValueError) as exc:
         raise FusionInputError(f"{name} must be an array of real numbers ({exc})") from None
+    if a.dtype.kind == "O" and a.size and all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in a.flat):
+        return _reals(a, name)  # Fraction, int beyond int64: numbers numpy keeps as objects
     if a.dtype.kind not in "iuf":
         kind = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes",
                 "O": "objects (ragged or not numbers)"}.get(a.dtype.kind, str(a.dtype))
@@ -115,6 +118,21 @@ def real_array(x, name: str) -> np.ndarray:
             idx = tuple(int(i) for i in np.argwhere(lost)[0])
             raise FusionInputError(f"{name} has a value beyond float64's range, {a[idx]!s} "
                                    f"at index {idx}")
+    return out
+
+
+def _reals(a: np.ndarray, name: str) -> np.ndarray:
+    """An object array of real numbers (numbers.Real, fuzz I7) as floats, each rounded once
+    by its own float(); one beyond float64's range is refused, naming its index."""
+    out = np.empty(a.shape)
+    for idx in np.ndindex(a.shape):
+        try:
+            out[idx] = float(a[idx])
+        except OverflowError:
+            text = repr(a[idx]) if len(repr(a[idx])) <= 24 else \
+                f"{repr(a[idx])[:8]}... ({len(repr(a[idx]))} digits)"
+            raise FusionInputError(f"{name} has a value beyond float64's range, {text}"
+                                   f"{f' at index {idx}' if idx else ''}") from None
     return out
 
 

@@ -133,6 +133,18 @@ def test_estimates_round_trip_through_tracks_keeps_every_field():
     assert (back.time, back.node) == (e.time, e.node)
 
 
+def test_track_ids_stay_within_int64():
+    """Fuzz I9: after the int64 maximum was bound, the next Stone Soup id got 2^63, which
+    to_estimates refused later as an id the user never gave; now it gets the smallest free
+    integer, and an integer beyond int64 is refused where it is given."""
+    ids = fs.TrackIds()
+    ids.track_id(2**63 - 1)
+    ids.track_id(0)
+    assert ids.int_id("a") == 1 and ids.int_id("b") == 2 and ids.int_id("a") == 1
+    with pytest.raises(fo.FusionInputError, match="int_id must fit in a signed 64-bit integer"):
+        ids.track_id(2**63)
+
+
 def test_tracks_round_trip_keeps_stone_soup_ids_and_latest_states():
     rng = np.random.default_rng(3)
     tracks = [Track(_states(rng, 2, t=None)[:1] + [s]) for s in _states(rng, 3)]

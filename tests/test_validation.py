@@ -60,6 +60,11 @@ CASES = [
     ("gap weights", lambda: fo.optimality_gap(COVS, [0.5, 0.5], "trace"), r"weights must have"),
     ("gap simplex", lambda: fo.optimality_gap(COVS, [0.5, 0.5, 0.5, -0.5]),
      r"weights must be >= 0, got -0\.5 at node 3"),
+    # fuzz I7, I8: a number beyond float64 is named as such; an empty p_detect by its name
+    ("int beyond float64", lambda: fo.mbci(MEANS, COVS, 10**400, 0.9),
+     r"p_detect has a value beyond float64's range, 10000000\.\.\. \(401 digits\)"),
+    ("empty p_detect", lambda: fo.detection_scales(np.zeros((2, 0)), 0.5),
+     r"p_detect must hold one value per node, got shape \(2, 0\) \(no node\)"),
 ]
 
 
@@ -122,3 +127,16 @@ def test_a_boolean_inside_a_list_is_refused_not_read_as_a_number(name, call):
     with pytest.raises(fo.FusionInputError,
                        match=rf"^{name} must be an array of real numbers, got a boolean in it"):
         call()
+
+
+def test_real_numbers_that_numpy_keeps_as_objects_are_read_as_floats():
+    """Fuzz I7: Fractions (and ints beyond int64 but within float64) were refused as "objects
+    (ragged or not numbers)"; they are numbers, each rounded once to float64 (as
+    Estimates' time already was)."""
+    from fractions import Fraction
+    exact = fo.mbci(MEANS, COVS, [0.9, 0.8, 0.7, 0.6], 0.5)
+    given = fo.mbci(MEANS, COVS, [Fraction(9, 10), 0.8, Fraction(7, 10), 0.6], Fraction(1, 2))
+    np.testing.assert_array_equal(given.weights, exact.weights)
+    assert fo.optimality_gap(COVS, [Fraction(1, 4)] * 4) == fo.optimality_gap(COVS, [0.25] * 4)
+    with pytest.raises(fo.FusionInputError, match="got objects"):
+        fo.mbci(MEANS, COVS, [Fraction(9, 10), "x", 0.7, 0.6], 0.5)
