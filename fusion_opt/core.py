@@ -288,7 +288,7 @@ _THREAD = threading.local()
 # The parts of the library's kernels (`compile_part`), by stage: the parts of a stage can
 # compile at once, in separate processes (longest first); "fuse" links the kernels of
 # "solve" and "assemble" from their cache entries, so its stage starts after theirs.
-KERNEL_STAGES = (("solve", "assemble", "conic", "rules"), ("fuse", "network"))
+KERNEL_STAGES = (("solve", "assemble", "conic", "rules", "pairs"), ("fuse", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
 
@@ -297,18 +297,18 @@ def compile_part(part: str) -> float:
     for the array types the library calls it with; returns the seconds it took. "solve":
     checks, factors and the weight solvers; "assemble": the fused estimates and their
     certificate; "conic": the scaled data a conic backend receives and the certificates of
-    its polish; "rules": the fixed-weight rules' (fast-ci, ifci), ICI's search and
-    `optimality_gap`'s kernels; "fuse": `fuse_exact`, the whole exact path, from the
-    kernels of "solve" and "assemble"; "network": the checks of an Estimates, MBCI's
-    detection scales and the association of estimates. On a cold cache, processes
-    compiling a stage's parts at once (KERNEL_STAGES) shorten the first fusion: about 70 s
-    in one process, 33 s + 6 s on 2 cores (at f915525; `studies/runner.py` has its workers
-    do it, as tests/conftest.py does)."""
+    its polish; "rules": the fixed-weight rules' (naive, fast-ci, ifci), known-cross's
+    mean and `optimality_gap`'s kernels; "pairs": ici's and ei's; "fuse": `fuse_exact`,
+    the whole exact path, from the kernels of "solve" and "assemble"; "network": the
+    checks of an Estimates, MBCI's detection scales and the association of estimates. On
+    a cold cache, processes compiling a stage's parts at once (KERNEL_STAGES) shorten the
+    first fusion: about 70 s in one process, 33 s + 6 s on 2 cores (at f915525;
+    `studies/runner.py` has its workers do it, as tests/conftest.py does)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()
-    if part in ("rules", "network"):
-        (_rule_kernels if part == "rules" else _network_kernels)()
+    if part in ("rules", "pairs", "network"):
+        {"rules": _rule_kernels, "pairs": _pair_kernels, "network": _network_kernels}[part]()
         return time.perf_counter() - t0
     B, N, n = 1, 3, 2
     a = _Arrays(B, N, n)
@@ -332,15 +332,21 @@ def compile_part(part: str) -> float:
 
 
 def _rule_kernels() -> None:
-    """One call of each kernel of the rules and of `optimality_gap`."""
+    """One call of each kernel of the rules but ici's and ei's, and of `optimality_gap`."""
     from .fusion import fuse, optimality_gap
 
     means, covs = np.zeros((3, 2)), np.tile(np.eye(2), (3, 1, 1))
     fuse(means, covs, "fast-ci")  # naive's and ifci's kernel too
-    fuse(means[:2], covs[:2], "ici")  # ei's too
     fuse(means, covs, "known-cross", cross=np.tile(np.eye(2), (3, 3, 1, 1)) * 0.5 +
          0.5 * np.eye(2) * np.eye(3)[:, :, None, None])
     optimality_gap(covs, np.full(3, 1 / 3))
+
+
+def _pair_kernels() -> None:
+    """The kernel of ici and ei."""
+    from .fusion import fuse
+
+    fuse(np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1)), "ici")
 
 
 def _network_kernels() -> None:

@@ -170,7 +170,8 @@ def _run_study(name: str, config: dict, args) -> None:
     try:
         try:
             runner.run_all(module.run_one, config, store, workers=_workers(args),
-                           scheduler=args.scheduler, progress=not args.quiet, label=name)
+                           scheduler=args.scheduler, progress=not args.quiet, label=name,
+                           kernels=getattr(module, "KERNELS", None))
             if hasattr(module, "benchmark"):  # timings, measured once after the runs
                 module.benchmark(config, out, progress=not args.quiet)
                 store.record_files(file_digests(out, module.MEASUREMENTS))

@@ -63,14 +63,17 @@ def timed_run(run_one: Callable, config: dict, index: int, seed) -> tuple:
 
 
 def run_all(run_one: Callable, config: dict, store: Store, *, workers: int = 1,
-            scheduler: str | None = None, progress: bool = True, label: str = "study") -> int:
+            scheduler: str | None = None, progress: bool = True, label: str = "study",
+            kernels=None) -> int:
     """Run every run of config["runs"] not yet in store, in a pool of at most `workers`
-    processes and one per run to do; returns how many ran now."""
+    processes and one per run to do; returns how many ran now. kernels: the parts of
+    `fusion_opt.core.KERNEL_PARTS` the runs call (None: all), which a pool's workers
+    compile before the runs."""
     runs, done = config["runs"], store.done()
     jobs = [(i, seed_of(config["seed"], i)) for i in range(runs) if i not in done]
     bar = tqdm(total=runs, initial=runs - len(jobs), unit="run", disable=not progress,
                file=sys.stderr, desc=label)
-    executor = _executor(min(workers, len(jobs)), scheduler) if jobs else _Serial()
+    executor = _executor(min(workers, len(jobs)), scheduler, kernels) if jobs else _Serial()
     try:
         for finished in executor.results(run_one, config, jobs):
             with _sigint_deferred():  # a run that has arrived is stored whole
@@ -116,10 +119,10 @@ def _sigint_ignored():
             signal.signal(sig, handler)
 
 
-def _executor(workers: int, scheduler: str | None):
+def _executor(workers: int, scheduler: str | None, kernels):
     if scheduler:
         return _Dask(scheduler)
-    return _Serial() if workers <= 1 else _Pool(workers)
+    return _Serial() if workers <= 1 else _Pool(workers, kernels)
 
 
 class _Serial:
@@ -156,9 +159,10 @@ class _Pool:
     """A local process pool. Workers ignore SIGINT (a terminal's Ctrl-C reaches the whole
     process group): the main process decides, and terminates them."""
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, kernels=None):
         self._pool = multiprocessing.Pool(workers, initializer=_worker)
         self._arrived: queue.SimpleQueue = queue.SimpleQueue()
+        self._kernels = kernels
 
     def results(self, run_one, config, jobs) -> Iterator[tuple]:
         self._compile_kernels()
@@ -177,12 +181,14 @@ class _Pool:
         parts of a stage at once (`fusion_opt.core.KERNEL_STAGES`): on a cold cache and 2
         cores, 33 s and then 6 s, instead of each worker compiling all of it on its first
         runs (about 70 s). On a warm cache, a load of 0.1 s. Past a second of it, the
-        kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once."""
+        kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once.
+        Only the parts the study's runs call (`run_all`'s kernels)."""
         from fusion_opt.core import KERNEL_STAGES, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results
         t0 = time.monotonic()
-        for parts in KERNEL_STAGES:
+        for stage in KERNEL_STAGES:
+            parts = [p for p in stage if self._kernels is None or p in self._kernels]
             for part in parts:
                 self._pool.apply_async(compile_part, (part,), callback=compiled.put,
                                        error_callback=compiled.put)

@@ -24,6 +24,9 @@ from . import plotting, stats
 from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
+# The kernel parts its runs call (`runner.run_all`): naive is its only rule, ici and ei
+# ("pairs") never run here.
+KERNELS = ("solve", "assemble", "conic", "rules", "fuse", "network")
 PAPER = {"KF a": (1.447, None), "KF b": (1.613, None), "RBPF a": (0.141, 0.0632),
          "RBPF b": (0.161, 0.0666), "CI": (0.141, 0.0613), "modified CI": (0.109, 0.0592)}
 ROWS = ("KF a", "KF b", "RBPF a", "RBPF b", "CI", "modified CI", "naive", "BCI logdet")

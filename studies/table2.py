@@ -37,6 +37,9 @@ from . import plotting, stats
 from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
+# The kernel parts its runs call (`runner.run_all`): it fuses with BCI and MBCI only, so no
+# rule's part ("rules", "pairs") is compiled for it.
+KERNELS = ("solve", "assemble", "conic", "fuse", "network")
 COLUMNS = ("mse", "mncm", "mse_pos", "mncm_pos", "ospa", "gospa", "card_err")
 PAPER = {"RBMCDA 1": (0.1430, 0.0578), "RBMCDA 2": (0.4716, 0.0616),
          "RBMCDA 3": (0.1228, 0.0533), "RBMCDA 4": (0.1830, 0.0580),

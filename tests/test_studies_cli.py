@@ -150,10 +150,10 @@ def test_a_run_seed_made_alone_is_the_spawned_one(seed):
 
 def test_a_pool_never_has_more_workers_than_runs_to_do(tiny, tmp_path, monkeypatch):
     started = []
-    monkeypatch.setattr(runner, "_Pool", lambda workers: started.append(workers)
-                        or runner._Serial())
+    monkeypatch.setattr(runner, "_Pool", lambda workers, kernels: started.append(
+        (workers, kernels)) or runner._Serial())
     _run(tiny, tmp_path, "--workers", "256")
-    assert started == [3]
+    assert started == [(3, table1.KERNELS)]  # and its workers compile what table 1 calls
 
 
 @pytest.mark.slow
