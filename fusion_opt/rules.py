@@ -167,6 +167,10 @@ def compiled(method, means, covs, F, k, trace: bool):
         code = fuse_pair(rule, means, covs, k, trace, W, mean, cov, obj, shares)
     else:
         code = fuse_fixed(rule, F, means, covs, k, trace, W, mean, cov, obj, shares)
+    if code == NOT_PD and method in PAIR_ONLY:
+        raise FusionSolverError(method, "numerical_error", "the fused mean or covariance is "
+                                "not finite or not positive definite in double precision",
+                                role="method")
     if code == NOT_PD:
         raise _not_positive_definite(method)
     if code == RATIO:
@@ -353,8 +357,8 @@ def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> i
         for a in range(n):
             for c in range(n):
                 t = 0.0
-                for j in range(n):
-                    t += T[a, j] * f[j] * f[j] * T[c, j]
+                for j in range(n):  # (T f)(T f)^T: T f^2 T^T underflowed for nodes 1e560 apart
+                    t += (T[a, j] * f[j]) * (T[c, j] * f[j])
                 P[a, c] = t
         shares[b, 0], shares[b, 1] = np.trace(K[0]) / n, np.trace(K[1]) / n
         if rule == EI:

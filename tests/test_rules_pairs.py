@@ -243,3 +243,19 @@ def test_equal_covariances_are_an_exact_tie_in_every_dimension(n):
     i = fo.fuse(means, covs, method="ici")
     np.testing.assert_array_equal(i.weights, [1.0, 0.0])
     np.testing.assert_array_equal(i.mean, means[0])
+
+
+@pytest.mark.parametrize("method", ["ici", "ei"])
+@pytest.mark.parametrize("a, b", [(1e-280, 1e280), (1e280, 1e-280)])
+def test_pair_rules_of_nodes_1e560_apart_give_the_better_node(method, a, b):
+    """Within the range prepare accepts (2^1900 between nodes), the pair rules keep the
+    better node: the compiled rules formed P = T f^2 T^T as T (f f) T^T, whose f^2 of
+    1e-560 underflowed to 0 and was refused as not positive definite; (T f)(T f)^T."""
+    covs = np.stack([np.eye(3) * a, np.diag([b, 2 * b, 3 * b])])
+    means = np.array([[1.0, 2.0, 3.0], [-1.0, 0.0, 1.0]])
+    better = int(b < a)
+    r = fo.fuse(means, covs, method=method)
+    assert r.weights[better] == 1.0
+    # ICI's axes are exp(log-sums), exact to about eps |log mu| = 1.4e-13 relative here
+    np.testing.assert_allclose(r.cov, covs[better], rtol=1e-12)
+    np.testing.assert_allclose(r.mean, means[better], rtol=1e-14)
