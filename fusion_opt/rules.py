@@ -145,11 +145,12 @@ def _one(method, means, covs, criterion, F) -> RuleOutput:
     """A rule of COMPILED on one problem, means (N, n) and covs (N, n, n), called directly
     (the core calls `compiled` on its prescaled batch)."""
     covs = np.array(covs, dtype=float)
-    F = _factors(covs) if F is None else F
+    if F is None:  # the pair rules factor the covariances themselves
+        F = covs if method in PAIR_ONLY else _factors(covs)
     weights, mean, cov, _, status, are = compiled(
         method, np.array(means, dtype=float)[None], covs[None], np.array(F, dtype=float)[None],
         np.zeros(1, np.int64), criterion == "trace")
-    return _output(method, weights[0], mean[0], cov[0], status, are)
+    return RuleOutput(weights[0], mean[0], cov[0], status, are)  # checked by the kernel
 
 
 def compiled(method, means, covs, F, k, trace: bool):
@@ -258,8 +259,9 @@ RULES: dict[str, Callable[..., RuleOutput]] = {
 RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
     "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
-# The rules of the CI formula at fixed weights, computed by one compiled call for a whole
-# batch (`fixed`); the others take one problem at a time.
+# The rules computed by one compiled call for a whole batch (`compiled`: the CI formula at
+# fixed weights by `fuse_fixed`, ici and ei by `fuse_pair`); known-cross takes one problem
+# at a time.
 NAIVE, FAST_CI, IFCI, ICI, EI = 0, 1, 2, 3, 4
 COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI}
 OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
@@ -339,12 +341,12 @@ def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> i
     covariances' ratio beyond float64) or OVERFLOW (the result beyond it in the input's)."""
     B, n = means.shape[0], means.shape[2]
     S, L, K = np.empty((2, n, n)), np.empty((2, n, n)), np.empty((2, n, n))
-    T, Tinv, P = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+    T, Tinv, P, M = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
     ka, kb, f = np.empty(n), np.empty(n), np.empty(n)
     for b in range(B):
         for i in range(2):
             scaled(covs[b, i], 1.0, k[b], S[i])
-        sigma = _pencil(S, L, T, Tinv)
+        sigma = _pencil(S, L, M, T, Tinv)
         if sigma.min() == 0.0:
             return RATIO
         if rule == ICI:
@@ -377,22 +379,21 @@ def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> i
 
 
 @jit
-def _pencil(S, L, T, Tinv):
+def _pencil(S, L, M, T, Tinv):
     """P_b = T T^T and P_a = T diag(sigma^2) T^T for S (2, n, n) symmetric positive
     definite: returns sigma (n,) >= 0 (0 where the ratio leaves float64), T and T^-1 into
-    the buffers. sigma are the singular values of L_b^-1 L_a (Cholesky factors, lower, in
-    L): with L_b^-1 L_a = U diag(sigma) V^T, T = L_b U and T^-1 = U^T L_b^-1."""
+    the buffers (L (2, n, n) and M (n, n) scratch). sigma are the singular values of
+    L_b^-1 L_a (Cholesky factors, lower, in L): with L_b^-1 L_a = U diag(sigma) V^T,
+    T = L_b U and T^-1 = U^T L_b^-1."""
     n = S.shape[1]
     for i in range(2):
         if not cholesky(S[i], L[i]):
             return np.zeros(n)
-    lower_inverse(L[1], Tinv)  # L_b^-1, then overwritten
-    M = np.empty((n, n))
     lower_solve(L[1], L[0], M)  # exactly I for equal covariances (ties stay ties)
     U, sigma, _ = np.linalg.svd(M)
     matmul(L[1], U, T)
-    Lbi = Tinv.copy()
-    matmul(np.ascontiguousarray(U.T), Lbi, Tinv)
+    lower_inverse(L[1], M)  # L_b^-1, M free again
+    matmul(np.ascontiguousarray(U.T), M, Tinv)
     return sigma
 
 

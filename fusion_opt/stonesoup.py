@@ -52,7 +52,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 from . import BACKENDS, FusionInputError, FusionResult, fuse
 from .estimates import Estimates
-from .validation import hashable, real_array
+from .validation import hashable, real_array, short_repr
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]
@@ -93,10 +93,8 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
     try:  # an int beyond float64 (10**400) overflows in float(), as a date beyond 9999 does
         return epoch + timedelta(seconds=float(seconds))
     except OverflowError:
-        text = repr(seconds) if len(repr(seconds)) <= 24 else \
-            f"{repr(seconds)[:8]}... ({len(repr(seconds))} digits)"
-        raise FusionInputError(f"seconds = {text} after {epoch} is beyond the dates a "
-                               "datetime holds (years 1 to 9999)") from None
+        raise FusionInputError(f"seconds = {short_repr(seconds)} after {epoch} is beyond "
+                               "the dates a datetime holds (years 1 to 9999)") from None
 
 
 def _check_epoch(epoch) -> None:
@@ -112,8 +110,8 @@ class TrackIds:
     A Stone Soup id seen first gets the next free integer (0, 1, 2, ..., one past the largest
     bound, or the smallest unbound one once that would pass int64, which Estimates' ids
     are); an integer seen first (an Estimates made by fusion-opt, turned into Tracks) gets
-    the string str(id), and must fit int64. Keep one
-    TrackIds per source to keep its ids persistent across steps and round trips.
+    the string str(id), and must fit int64. Keep one TrackIds per source to keep its ids
+    persistent across steps and round trips.
     """
 
     def __init__(self):

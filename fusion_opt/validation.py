@@ -129,11 +129,17 @@ def _reals(a: np.ndarray, name: str) -> np.ndarray:
         try:
             out[idx] = float(a[idx])
         except OverflowError:
-            text = repr(a[idx]) if len(repr(a[idx])) <= 24 else \
-                f"{repr(a[idx])[:8]}... ({len(repr(a[idx]))} digits)"
-            raise FusionInputError(f"{name} has a value beyond float64's range, {text}"
+            raise FusionInputError(f"{name} has a value beyond float64's range, "
+                                   f"{short_repr(a[idx])}"
                                    f"{f' at index {idx}' if idx else ''}") from None
     return out
+
+
+def short_repr(value) -> str:
+    """repr(value), or its first 8 characters and its length where it is longer than 24 (an
+    int of 400 digits, named in a one-line refusal)."""
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
 
 
 def _contains_bool(value) -> bool:

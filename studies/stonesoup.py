@@ -241,8 +241,8 @@ def _check_track_covariances(sc: Scenario) -> None:
     at the measurement's covariance in position and the initiator's velocity variance 1,
     updated at min_points - 1 more scans, then predicted through max_misses - 1 missed
     ones (at max_misses it is deleted before it is reported); each must be one a fusion
-    accepts (fuzz H11: q = 1e30 gave velocity variances 1e29
-    times the positions' and failed every run at the fusion)."""
+    accepts (fuzz H11: q = 1e30 gave velocity variances 1e29 times the positions' and
+    failed every run at the fusion)."""
     interval = timedelta(seconds=sc.dt)
     A, Q = _cv(sc.q).matrix(time_interval=interval), _cv(sc.q).covar(time_interval=interval)
     H = np.eye(NDIM)[list(POSITION)]

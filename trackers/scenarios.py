@@ -26,7 +26,7 @@ from fusion_opt.prepare import MAX_CONDITION
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
-EPS = float(np.finfo(float).eps)
+_EPS = float(np.finfo(float).eps)
 
 #: Origin label of a clutter measurement.
 CLUTTER = -1
@@ -187,8 +187,8 @@ def check_reach(name: str, position, speed: float, duration: float, sd: float,
         raise FusionInputError(
             f"{name}: the target reaches {reach:.3g} m from the origin, {reach / sd:.3g} "
             f"times {sd_name} = {sd:.3g}, where float64 rounds positions to "
-            f"{reach * EPS:.3g} m; the scenarios accept up to {MAX_REACH:.0e} sds, where the "
-            f"rounding is {MAX_REACH * EPS:.1e} sd (centre the coordinates on the targets; a "
+            f"{reach * _EPS:.3g} m; the scenarios accept up to {MAX_REACH:.0e} sds, where the "
+            f"rounding is {MAX_REACH * _EPS:.1e} sd (centre the coordinates on the targets; a "
             f"noise sd below 1e-12 of the paths' extent is beyond float64)")
 
 
