@@ -8,8 +8,8 @@ Every problem is solved exactly as `fuse` solves it alone (same checks, scaling,
 and certificate, bit for bit), whatever the other problems of the batch. With the native
 backends ("newton", the default, and "closed-form") all problems go to the compiled
 solver in one call; other backends solve problem by problem and are polished like `fuse`;
-naive and fast-ci fuse the whole batch in one vectorised call, the other rules run
-problem by problem. The options and their defaults are those of `fuse`,
+each rule fuses the whole batch in one compiled call. The options and their defaults are
+those of `fuse`,
 listed once in `core.py`; per-problem MBCI arguments may be (B, N), known-cross's cross
 (B, N, N, n, n).
 """

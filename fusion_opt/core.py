@@ -206,13 +206,9 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
     q, E = _detection(req, B, N, batch)
     work = _Arrays.of(B, N, n)
-    if req.method in rules.COMPILED:
+    if req.method in rules.RULES:
         _prepare(means, covs, q, E, work, names, batch)
         out = _compiled(req, means, covs, work, batch)
-    elif req.method in rules.RULES:
-        _prepare(means, covs, q, E, work, names, batch)
-        out = _known_cross(req, means, covs, work.k, work.F, batch)
-        _check_finite(req, out)
     elif req.backend in EXACT:
         out = _exact(req, means, covs, q, E, work, names, batch)
     else:
@@ -491,66 +487,16 @@ def _overflow(a, batch: bool) -> FusionInputError:
 
 
 def _compiled(req, means, covs, a, batch):
-    """A rule of rules.COMPILED, the whole batch in one compiled call (the fixed-weight
-    rules on the factors `prepare` left in a)."""
-    B = means.shape[0]
+    """A rule of rules.RULES, the whole batch in one compiled call (on the factors
+    `prepare` left in a)."""
+    B, N, n = means.shape
+    cross = rules.cross_array(req.args.get("cross"), B, N, n, batch) \
+        if req.method == "known-cross" else None
     weights, mean, cov, obj, status, are = rules.compiled(req.method, means, covs, a.F, a.k,
-                                                          req.trace)
+                                                          req.trace, cross, batch)
     status = np.full(B, status, dtype=object) if batch else (status,)
     return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
             are)
-
-
-def _known_cross(req, means, covs, k, F, batch):
-    """known-cross (the rule of rules.RULES not in rules.COMPILED), problem by problem, on
-    the prescaled covariances, their factors F (B, N, n, n) from `prepare`, and cross
-    scaled alike."""
-    B, N, n = means.shape
-    shift = -k[:, None, None, None]  # exact powers of two, applied by ldexp (2^1030 overflows)
-    scaled = np.ldexp(symmetrised(covs), shift)
-    cross = _cross(req.args.get("cross"), B, N, n, batch)
-    outs = [rules.known_cross(means[b], scaled[b], req.criterion, F=F[b],
-                              cross=np.ldexp(cross[b], shift[b, 0])) for b in range(B)]
-    weights, mean, scaled_cov = (np.stack([o[i] for o in outs]) for i in range(3))
-    status = np.array([Status(o.status) for o in outs], dtype=object)
-    weights_are = outs[0].weights_are
-    with np.errstate(over="ignore"):  # an overflow is refused by _check_finite
-        cov = np.ldexp(scaled_cov, -shift[:, 0])
-        if req.trace:
-            obj = np.ldexp(np.trace(scaled_cov, axis1=-2, axis2=-1), k)
-        else:
-            obj = _logdet(scaled_cov) + n * k * np.log(2.0)
-    return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
-            weights_are)
-
-
-def _cross(cross, B, N, n, batch):
-    """known-cross's cross as (B, N, N, n, n), its leading shape checked by name."""
-    if cross is None:
-        raise FusionInputError("method 'known-cross' needs cross, the joint covariance "
-                               f"blocks ({'B, ' if batch else ''}N, N, n, n)")
-    cross = real_array(cross, "cross")
-    want = (B, N, N, n, n) if batch else (N, N, n, n)
-    if cross.shape != want:
-        raise FusionInputError(f"cross must have shape {want}, got {cross.shape}")
-    return cross if batch else cross[None]
-
-
-def _logdet(cov):
-    sign, logdet = np.linalg.slogdet(cov)
-    return np.where(sign > 0, logdet, np.nan)
-
-
-def _check_finite(req, out):
-    """No NaN, inf or non-positive-definite covariance leaves the library."""
-    w, mean, cov, obj = out[:4]
-    if not (np.isfinite(mean).all() and np.isfinite(cov).all() and np.isfinite(obj).all()
-            and np.isfinite(w).all()):
-        raise FusionInputError(rules.OVERFLOW_MESSAGE)
-    diag = np.diagonal(cov, axis1=-2, axis2=-1)
-    if not (diag > 0).all():
-        raise FusionSolverError(req.backend or req.method, "numerical_error",
-                                "the fused covariance is not positive definite", _role(req))
 
 
 def _role(req) -> str:

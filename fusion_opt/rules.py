@@ -1,8 +1,7 @@
 """Fusion rules other than optimised CI, for comparison: `RULES[name](means, covs, criterion,
 **args) -> RuleOutput` for one problem; the core (`fuse(method=name)`, `fuse_batch`) calls
-`compiled` for the rules of COMPILED, a whole batch in one compiled call (`fuse_fixed`,
-`fuse_pair`, which the functions of RULES for them call too), and known-cross problem by
-problem.
+`compiled`, a whole batch of a rule in one compiled call (`fuse_fixed`, `fuse_pair`,
+`fuse_known_cross`), which the functions of RULES call too.
 
 Inputs arrive validated: float64 means (N, n) and covs (N, n, n), finite, symmetric and
 positive definite, multiplied by a power of two so that the nodes' scales sit around 1
@@ -79,14 +78,22 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from scipy.linalg import lapack
 
 from .assemble import all_finite, fuse_at
 from .factored import factor, work
-from .linalg import cholesky, jit, lower_inverse, lower_solve, matmul
+from .linalg import (
+    cholesky,
+    householder,
+    jit,
+    lower_inverse,
+    lower_solve,
+    matmul,
+    thin_qt,
+    upper_inverse,
+)
 from .prepare import MAX_CONDITION, scaled
 from .results import FusionInputError, FusionSolverError, Status
-from .validation import SYMMETRY_RTOL, finite_array
+from .validation import SYMMETRY_RTOL, real_array
 
 CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
 _LN2 = np.log(2.0)
@@ -114,20 +121,10 @@ def naive(means, covs, criterion, *, F=None) -> RuleOutput:
 
 
 def known_cross(means, covs, criterion, *, cross, F=None) -> RuleOutput:
-    """BLUE given cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), cross[i, i] = covs[i].
-
-    With D = blockdiag(D_i), P_i = D_i D_i^T, the joint is S = D C D^T, C = R R^T, and
-    Z = R^-1 D^-1 H = Q U (thin QR): P = U^-1 U^-T, K = U^-1 Q^T R^-1 D^-1.
-    """
-    N, n = means.shape
-    Dinv = _factors(covs) if F is None else F  # (N, n, n)
-    R = _correlation_factor(cross, covs, Dinv)
-    Z = _solve_lower(R, Dinv.reshape(N * n, n))
-    Q, U = np.linalg.qr(Z)
-    Uinv = _solve_lower(U.T, np.eye(n)).T
-    G = _solve_lower(R, Q, transpose=True).reshape(N, n, n)  # R^-T Q by node
-    gains = Uinv @ np.swapaxes(G, -1, -2) @ Dinv
-    return _finish("known-cross", means, Uinv @ Uinv.T, gains)
+    """BLUE given cross (N, N, n, n), cross[i, j] = cov(e_i, e_j), cross[i, i] = covs[i]
+    (`fuse_known_cross`)."""
+    N, n = np.shape(means)
+    return _one("known-cross", means, covs, criterion, F, cross_array(cross, 1, N, n, False))
 
 
 def fast_ci(means, covs, criterion, *, F=None) -> RuleOutput:
@@ -141,30 +138,39 @@ def ifci(means, covs, criterion, *, F=None) -> RuleOutput:
     return _one("ifci", means, covs, criterion, F)
 
 
-def _one(method, means, covs, criterion, F) -> RuleOutput:
-    """A rule of COMPILED on one problem, means (N, n) and covs (N, n, n), called directly
-    (the core calls `compiled` on its prescaled batch)."""
+def _one(method, means, covs, criterion, F, cross=None) -> RuleOutput:
+    """A rule of COMPILED on one problem, means (N, n) and covs (N, n, n) (known-cross:
+    cross (1, N, N, n, n) from `cross_array`), called directly (the core calls `compiled`
+    on its prescaled batch)."""
     covs = np.array(covs, dtype=float)
     if F is None:  # the pair rules factor the covariances themselves
         F = covs if method in PAIR_ONLY else _factors(covs)
     weights, mean, cov, _, status, are = compiled(
         method, np.array(means, dtype=float)[None], covs[None], np.array(F, dtype=float)[None],
-        np.zeros(1, np.int64), criterion == "trace")
+        np.zeros(1, np.int64), criterion == "trace", cross)
     return RuleOutput(weights[0], mean[0], cov[0], status, are)  # checked by the kernel
 
 
-def compiled(method, means, covs, F, k, trace: bool):
+def compiled(method, means, covs, F, k, trace: bool, cross=None, batch: bool = False):
     """Rule `method` of COMPILED on B problems, means (B, N, n) and covs (B, N, n, n), in
     one compiled call; F (B, N, n, n) are the factors of the covariances scaled by 2^-k
-    (B,) (`prepare`), which the pair rules do not use: (weights (B, N), mean (B, n),
-    cov (B, n, n), the criterion at it (B,), the status, weights_are). Raises
-    FusionSolverError where a result is not positive definite to rounding in the scaled
-    units, FusionInputError where it overflows float64 in the input's."""
+    (B,) (`prepare`), which the pair rules do not use; known-cross's cross (B, N, N, n, n)
+    from `cross_array`: (weights (B, N), mean (B, n), cov (B, n, n), the criterion at it
+    (B,), the status, weights_are). Raises FusionInputError for a cross that is no joint
+    covariance of the nodes (naming the problem in a batch) and where a result overflows
+    float64 in the input's units, FusionSolverError where it is not positive definite to
+    rounding in the scaled units."""
     B, N, n = means.shape
     W, shares, obj = np.empty((B, N)), np.empty((B, N)), np.empty(B)
     mean, cov = np.empty((B, n)), np.empty((B, n, n))
     rule = COMPILED[method]
-    if method in PAIR_ONLY:
+    if rule == KNOWN_CROSS:
+        where, condition = np.zeros(3, dtype=np.int64), np.empty(B)
+        code = fuse_known_cross(F, means, covs, cross, k, trace, mean, cov, obj, shares,
+                                where, condition)
+        if code >= CROSS_NONFINITE:
+            raise _cross_error(code, where, condition, covs, cross, batch)
+    elif method in PAIR_ONLY:
         code = fuse_pair(rule, means, covs, k, trace, W, mean, cov, obj, shares)
     else:
         code = fuse_fixed(rule, F, means, covs, k, trace, W, mean, cov, obj, shares)
@@ -180,7 +186,7 @@ def compiled(method, means, covs, F, k, trace: bool):
     if code == OVERFLOW:
         raise FusionInputError(OVERFLOW_MESSAGE)
     status = Status.OPTIMAL if method == "ici" else Status.CLOSED_FORM
-    if method in ("naive", "ei"):
+    if method in ("naive", "known-cross", "ei"):
         return shares, mean, cov, obj, status, GAIN_SHARES
     return W, mean, cov, obj, status, CI_WEIGHTS
 
@@ -259,12 +265,14 @@ RULES: dict[str, Callable[..., RuleOutput]] = {
 RULE_ARGS: dict[str, frozenset] = {name: frozenset() for name in RULES} | {
     "known-cross": frozenset({"cross"})}
 PAIR_ONLY = frozenset({"ici", "ei"})
-# The rules computed by one compiled call for a whole batch (`compiled`: the CI formula at
-# fixed weights by `fuse_fixed`, ici and ei by `fuse_pair`); known-cross takes one problem
-# at a time.
-NAIVE, FAST_CI, IFCI, ICI, EI = 0, 1, 2, 3, 4
-COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI}
+# Each rule's kernel (`compiled`): the CI formula at fixed weights by `fuse_fixed`, ici and
+# ei by `fuse_pair`, known-cross by `fuse_known_cross`.
+NAIVE, FAST_CI, IFCI, ICI, EI, KNOWN_CROSS = 0, 1, 2, 3, 4, 5
+COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI,
+            "known-cross": KNOWN_CROSS}
 OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
+# known-cross's refusals of cross (`_cross_error` words them)
+CROSS_NONFINITE, CROSS_ASYMMETRIC, CROSS_DIAGONAL, CROSS_NOT_PD, CROSS_SINGULAR = range(4, 9)
 OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means too large, "
                     "or MBCI scales too small for the result to be represented)")
 
@@ -272,26 +280,6 @@ OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means 
 def _factors(covs):
     """F_i = C_i^-1 (..., N, n, n), lower triangular, C_i C_i^T = P_i: Y_i = F_i^T F_i."""
     return np.linalg.inv(np.linalg.cholesky(covs))
-
-
-def _solve_lower(L, B, transpose=False):
-    """L^-1 B (L^-T B if transpose) for L (m, m) lower triangular, B (m, k), by LAPACK
-    (scipy's solve_triangular costs a millisecond a call); NaN if L is singular, which
-    `_output` refuses."""
-    X, info = lapack.dtrtrs(L, B, lower=1, trans=int(transpose))
-    return X if info == 0 else np.full(X.shape, np.nan)
-
-
-def _finish(method, means, P, gains, status=Status.CLOSED_FORM, weights=None) -> RuleOutput:
-    """A rule given by its gains (N, n, n) and P; weights are CI weights if given, else the
-    gain shares."""
-    shares = np.trace(gains, axis1=-2, axis2=-1) / means.shape[-1]
-    mean = np.empty(means.shape[-1])
-    gain_mean(np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(gains), shares,
-              mean)
-    if weights is None:
-        return _output(method, shares, mean, P, status, GAIN_SHARES)
-    return _output(method, weights, mean, P, status, CI_WEIGHTS)
 
 
 @jit
@@ -314,23 +302,6 @@ def gain_mean(means, K, shares, mean):
 def _not_positive_definite(method) -> FusionSolverError:
     return FusionSolverError(method, "numerical_error", "the sum of the informations is not "
                              "positive definite in double precision", role="method")
-
-
-def _output(method, weights, mean, P, status, weights_are) -> RuleOutput:
-    """The result, refused (FusionSolverError) if anything is non-finite or P is not
-    positive definite."""
-    P = 0.5 * (P + np.swapaxes(P, -1, -2))
-    finite = all(np.isfinite(x).all() for x in (weights, mean, P))
-    try:
-        if finite:
-            np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        finite = False
-    if not finite:
-        raise FusionSolverError(method, "numerical_error",
-                                "the fused mean or covariance is not finite or not positive "
-                                "definite in double precision", role="method")
-    return RuleOutput(weights, mean, P, status, weights_are)
 
 
 @jit
@@ -486,46 +457,200 @@ def _ici_bisect(l, sign, log_gap, log_c, trace: bool):
             lo = u
 
 
-def _correlation_factor(cross, covs, Dinv):
-    """cross (N, N, n, n) checked, and the Cholesky factor R (N n, N n) of the joint
-    whitened node by node, C = R R^T with C[i, j] = D_i^-1 cross[i, j] D_j^-T (identity
-    diagonal blocks): well scaled whatever the nodes' scales."""
-    N, n = covs.shape[:2]
-    cross = finite_array(cross, "cross")
-    if cross.shape != (N, N, n, n):
-        raise FusionInputError(f"cross must have shape {(N, N, n, n)}, got {cross.shape}")
-    # Tolerances per block, from the nodes' own scales (|cross[i, j]| <= sqrt(s_i s_j)).
-    root = np.sqrt(np.abs(np.diagonal(covs, axis1=-2, axis2=-1)).max(-1))  # (N,)
-    tol = SYMMETRY_RTOL * root[:, None] * root[None, :]
-    asym = np.abs(cross - np.swapaxes(cross.transpose(1, 0, 2, 3), -1, -2)).max((-2, -1))
-    if (asym > tol).any():
-        i, j = np.argwhere(asym > tol)[0]
-        raise FusionInputError(f"cross is not symmetric: cross[{i}, {j}] differs from "
-                               f"cross[{j}, {i}]^T by {asym[i, j]:.3g}")
-    diag = np.abs(cross[np.arange(N), np.arange(N)] - covs).max((-2, -1))
-    if (diag > np.diagonal(tol)).any():
-        i = int(np.argmax(diag > np.diagonal(tol)))
-        raise FusionInputError(f"cross[{i}, {i}] differs from covs of node {i} by "
-                               f"{diag[i]:.3g}")
-    with np.errstate(over="ignore", invalid="ignore"):  # overflow: refused below
-        # by blocks D_i^-1 cross[i, j] D_j^-T, matrix products: a three-operand einsum
-        # summed over b and c at once, N^2 n^4 (21 s at N = 8, n = 128, against 0.034 s)
-        C = Dinv[:, None] @ cross @ np.swapaxes(Dinv, -1, -2)[None]
-    C = 0.5 * (C + np.swapaxes(C.transpose(1, 0, 2, 3), -1, -2))
-    C[np.arange(N), np.arange(N)] = np.eye(n)
-    C = C.transpose(0, 2, 1, 3).reshape(N * n, N * n)
-    try:
-        if not np.isfinite(C).all():
-            raise np.linalg.LinAlgError
-        R = np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
-        raise FusionInputError("cross: the joint covariance is not positive definite") \
-            from None
-    # the limit a single covariance has (prepare.MAX_CONDITION), on the whitened joint
-    condition = np.sqrt((C * C).sum()) * (_solve_lower(R, np.eye(N * n)) ** 2).sum()
-    if not condition <= MAX_CONDITION:
-        raise FusionInputError(
-            f"cross: the joint covariance, whitened node by node, is numerically singular: "
-            f"its condition estimate |C|_F |C^-1|_F, {condition:.3g}, is beyond "
-            f"{MAX_CONDITION:.3g}, as for a single covariance")
-    return R
+def cross_array(cross, B: int, N: int, n: int, batch: bool) -> np.ndarray:
+    """known-cross's cross as a C-contiguous float array (B, N, N, n, n), its shape checked
+    by name: (N, N, n, n) for one problem, (B, N, N, n, n) in a batch."""
+    if cross is None:
+        raise FusionInputError("method 'known-cross' needs cross, the joint covariance "
+                               f"blocks ({'B, ' if batch else ''}N, N, n, n)")
+    cross = real_array(cross, "cross")
+    want = (B, N, N, n, n) if batch else (N, N, n, n)
+    if cross.shape != want:
+        raise FusionInputError(f"cross must have shape {want}, got {cross.shape}")
+    cross = np.ascontiguousarray(cross if batch else cross[None])
+    return cross if cross.flags.writeable else cross.copy()  # one array type compiled
+
+
+def _cross_error(code, where, condition, covs, cross, batch) -> FusionInputError:
+    """The FusionInputError of `_check_cross` or of the whitened joint's factorisation."""
+    b, i, j = (int(x) for x in where)
+    problem = f"problem {b}: " if batch else ""
+    if code == CROSS_NONFINITE:
+        idx = np.unravel_index(i, cross.shape[1:])
+        idx = tuple(int(x) for x in ((b, *idx) if batch else idx))
+        value = cross.reshape(-1)[b * cross[0].size + i]
+        return FusionInputError(f"cross has a non-finite value {value} at index {idx}")
+    if code == CROSS_ASYMMETRIC:
+        asym = np.abs(cross[b, i, j] - cross[b, j, i].T).max()
+        return FusionInputError(f"{problem}cross is not symmetric: cross[{i}, {j}] differs "
+                                f"from cross[{j}, {i}]^T by {asym:.3g}")
+    if code == CROSS_DIAGONAL:
+        diag = np.abs(cross[b, i, i] - covs[b, i]).max()
+        return FusionInputError(f"{problem}cross[{i}, {i}] differs from covs of node {i} by "
+                                f"{diag:.3g}")
+    if code == CROSS_NOT_PD:
+        return FusionInputError(f"{problem}cross: the joint covariance is not positive "
+                                "definite")
+    return FusionInputError(
+        f"{problem}cross: the joint covariance, whitened node by node, is numerically "
+        f"singular: its condition estimate |C|_F |C^-1|_F, {condition[b]:.3g}, is beyond "
+        f"{MAX_CONDITION:.3g}, as for a single covariance")
+
+@jit
+def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shares, where,
+                     condition) -> int:
+    """known-cross on B problems (`compiled` says what the outputs hold), cross
+    (B, N, N, n, n) as given, covs and F as `prepare` left them (factors of the covariances
+    scaled by 2^-k). Per problem: `_check_cross`; the joint whitened node by node,
+    C = D^-1 S D^-T with the identity as diagonal blocks, C = R R^T (Cholesky), refused
+    beyond MAX_CONDITION by the estimate |C|_F |R^-1|_F^2, written to condition (B,); the
+    thin QR Z = R^-1 [F_1; ...; F_N] = Q U; P = U^-1 U^-T and the gains
+    K_i = U^-1 (R^-T Q)_i^T F_i. Returns OK, a CROSS_ code (where = (problem, i, j), or
+    (problem, flat index into cross[b])), NOT_PD or OVERFLOW."""
+    B, N, n = means.shape
+    m = N * n
+    C, R, Z = np.empty((m, m)), np.empty((m, m)), np.empty((m, n))
+    Zt, Vt, Qt, G = np.empty((n, m)), np.empty((n, m)), np.empty((n, m)), np.empty((m, n))
+    U, Ui, P, L, X = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), \
+        np.empty((n, n))
+    K = np.empty((N, n, n))
+    for b in range(B):
+        code = _check_cross(covs[b], cross[b], k[b], where)
+        if code != OK:
+            where[0] = b
+            return code
+        _whitened_joint(F[b], cross[b], k[b], X, C)
+        norm2 = 0.0
+        for a in range(m):
+            for c in range(m):
+                norm2 += C[a, c] * C[a, c]
+        if not np.isfinite(norm2) or not cholesky(C, R):
+            where[0] = b
+            return CROSS_NOT_PD
+        lower_inverse(R, C)  # C is free: R^-1, for the condition estimate
+        inverse2 = 0.0
+        for a in range(m):
+            for c in range(a + 1):
+                inverse2 += C[a, c] * C[a, c]
+        condition[b] = np.sqrt(norm2) * inverse2
+        if not condition[b] <= MAX_CONDITION:
+            where[0] = b
+            return CROSS_SINGULAR
+        for i in range(N):
+            for a in range(n):
+                for c in range(n):
+                    Z[i * n + a, c] = F[b, i, a, c]
+        lower_solve(R, Z, G)  # G is free: Z = R^-1 [F_i]
+        for a in range(m):
+            for c in range(n):
+                Zt[c, a] = G[a, c]
+        householder(Zt, n, m, Vt, U)
+        thin_qt(Vt, n, m, Qt)
+        _lower_t_solve(R, Qt, G)  # G = R^-T Q
+        upper_inverse(U, Ui)
+        for i in range(N):
+            for a in range(n):  # X = U^-1 G_i^T
+                for c in range(n):
+                    t = 0.0
+                    for d in range(a, n):
+                        t += Ui[a, d] * G[i * n + c, d]
+                    X[a, c] = t
+            matmul(X, F[b, i], K[i])
+            shares[b, i] = np.trace(K[i]) / n
+        for a in range(n):  # P = U^-1 U^-T
+            for c in range(n):
+                t = 0.0
+                for d in range(max(a, c), n):
+                    t += Ui[a, d] * Ui[c, d]
+                P[a, c] = t
+        gain_mean(means[b], K, shares[b], mean[b])
+        if not cholesky(P, L) or not all_finite(mean[b]) or not np.isfinite(shares[b]).all():
+            return NOT_PD
+        scaled(P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
+        if trace:
+            obj[b] = np.ldexp(np.trace(P), k[b])
+        else:
+            obj[b] = 2.0 * np.log(np.diag(L)).sum() + n * k[b] * _LN2
+        if not (np.isfinite(obj[b]) and all_finite(cov[b])):
+            return OVERFLOW
+    return OK
+
+
+@jit
+def _check_cross(covs, cross, k, where) -> int:
+    """cross (N, N, n, n) finite; in the units of the covariances scaled by 2^-k, each block
+    cross[i, j] within SYMMETRY_RTOL sqrt(s_i s_j) of cross[j, i]^T and each diagonal
+    block of covs[i] (s_i the largest diagonal entry of node i: |cross[i, j]| <=
+    sqrt(s_i s_j)). where[1:] = (i, j) or (flat index, 0) of a failure."""
+    N, n = covs.shape[0], covs.shape[1]
+    for t in range(cross.size):
+        if not np.isfinite(cross.flat[t]):
+            where[1], where[2] = t, 0
+            return CROSS_NONFINITE
+    root = np.empty(N)
+    for i in range(N):
+        top = 0.0
+        for a in range(n):
+            top = max(top, abs(np.ldexp(covs[i, a, a], -k)))
+        root[i] = np.sqrt(top)
+    for i in range(N):
+        for j in range(i, N):
+            tol = SYMMETRY_RTOL * root[i] * root[j]
+            for a in range(n):
+                for c in range(n):
+                    x = np.ldexp(cross[i, j, a, c], -k)
+                    if abs(x - np.ldexp(cross[j, i, c, a], -k)) > tol:
+                        where[1], where[2] = i, j
+                        return CROSS_ASYMMETRIC
+                    if i == j and abs(x - _sym_pair(covs[i], covs[i], a, c, k)) > tol:
+                        where[1], where[2] = i, i
+                        return CROSS_DIAGONAL
+    return OK
+
+
+@jit
+def _whitened_joint(F, cross, k, X, C):
+    """C (N n, N n): block (i, j) = F_i sym(cross)[i, j] F_j^T (cross scaled by 2^-k), the
+    diagonal blocks exactly I."""
+    N, n = F.shape[0], F.shape[1]
+    for i in range(N):
+        for j in range(N):
+            if i == j:
+                for a in range(n):
+                    for c in range(n):
+                        C[i * n + a, j * n + c] = 1.0 if a == c else 0.0
+                continue
+            if j < i:
+                continue
+            for a in range(n):  # X = sym(cross)[i, j] F_j^T
+                for c in range(n):
+                    t = 0.0
+                    for d in range(c + 1):
+                        t += _sym_pair(cross[i, j], cross[j, i], a, d, k) * F[j, c, d]
+                    X[a, c] = t
+            for a in range(n):
+                for c in range(n):
+                    t = 0.0
+                    for d in range(a + 1):
+                        t += F[i, a, d] * X[d, c]
+                    C[i * n + a, j * n + c] = t
+                    C[j * n + c, i * n + a] = t
+
+
+@jit
+def _lower_t_solve(L, Bt, X):
+    """X = L^-T B for a lower-triangular L (m, m) and B (m, k) given as Bt (k, m), by back
+    substitution."""
+    m, kk = L.shape[0], Bt.shape[0]
+    for j in range(kk):
+        for i in range(m - 1, -1, -1):
+            t = Bt[j, i]
+            for p in range(i + 1, m):
+                t -= L[p, i] * X[p, j]
+            X[i, j] = t / L[i, i]
+
+
+@jit
+def _sym_pair(X, Y, a, c, k) -> float:
+    """(X[a, c] + Y[c, a]) / 2 * 2^-k, without overflow for entries near 1.8e308."""
+    return 0.5 * np.ldexp(X[a, c], -k) + 0.5 * np.ldexp(Y[c, a], -k)

@@ -230,6 +230,25 @@ def test_known_cross_refuses_bad_cross_by_name():
         assert info.match(what), (what, str(info.value))
 
 
+def test_known_cross_in_a_batch_names_the_problem_of_a_bad_cross():
+    """Each refusal of the kernel (`_check_cross`, the whitened joint) names the problem and
+    the block or index of the user's array, in the user's units."""
+    means, covs, cases = _bad_cross()
+    good = joint(np.random.default_rng(5), covs, 0.5)
+    for cross, what in cases[1:2] + cases[4:]:
+        stack = np.stack([good, good, cross])
+        with pytest.raises(fo.FusionInputError, match="cross") as info:
+            fo.fuse_batch(np.stack([means] * 3), np.stack([covs] * 3), "known-cross",
+                          cross=stack)
+        assert info.match(what), (what, str(info.value))
+        assert info.match(r"problem 2|index \(2, 0, 1, 0, 0\)"), str(info.value)
+    asym = cases[4][0]
+    small = int(np.argmin(np.trace(covs, axis1=1, axis2=2)))
+    by = np.abs(asym[small, small] - asym[small, small].T).max()
+    with pytest.raises(fo.FusionInputError, match=f"by {by:.3g}"):
+        fo.fuse(means, covs, "known-cross", cross=asym)
+
+
 # --- the glue of fuse and fuse_batch ----------------------------------------------------
 
 @pytest.mark.parametrize("name", list(RULES))
