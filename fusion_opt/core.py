@@ -43,7 +43,7 @@ from .assemble import assemble
 from .backends import BACKENDS, EXACT, REGISTRY, newton, slsqp
 from .detection import detection_split
 from .exact import fuse_exact
-from .limits import batch_bytes, conic_bytes, limits, working_bytes
+from .limits import batch_bytes, conic_bytes, joint_bytes, limits, working_bytes
 from .prepare import (
     ASYMMETRIC,
     COVS_NONFINITE,
@@ -461,16 +461,17 @@ def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
     """(what, bytes, name of its limit in fusion_opt.limits) of the first estimate of B
     problems' memory over its limit (`check_memory`), or None. The numbers come first and
     the words only for one over its limit (a call's fixed cost: 0.55 against 1.4 us)."""
-    need = (batch_bytes(B, N, n),
-            0.0 if req.backend is None else working_bytes(n, N, req.backend),
-            conic_bytes(n, N) if req.backend in _CONIC else 0.0)
+    work = joint_bytes(n, N) if req.method == "known-cross" else \
+        0.0 if req.backend is None else working_bytes(n, N, req.backend)
+    need = (batch_bytes(B, N, n), work, conic_bytes(n, N) if req.backend in _CONIC else 0.0)
     limit = (limits.working_memory, limits.working_memory, limits.conic_memory)
     if need[0] <= limit[0] and need[1] <= limit[1] and need[2] <= limit[2]:
         return None
     for k in range(3):
         if need[k] > limit[k]:
             what = (f"the arrays of {B} problem{'s' * (B != 1)}",
-                    "the weight solver's work arrays", "Clarabel's KKT system")[k]
+                    "the whitened joint covariance" if req.method == "known-cross"
+                    else "the weight solver's work arrays", "Clarabel's KKT system")[k]
             return what, need[k], ("working_memory", "working_memory", "conic_memory")[k]
     return None
 

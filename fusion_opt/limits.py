@@ -14,8 +14,9 @@ conic_memory: the estimated memory of a conic solve by "clarabel" / "clarabel-di
 working_memory: the estimated memory of the native solvers' work arrays for one problem:
     the whitened nodes and the nearest-point matrix, 3 (n^2 + 1) N doubles, and five
     stacks of N n x n matrices (factors, their QR, a subproblem's factors); for "slsqp"
-    also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB); and,
-    for any method, a whole batch's arrays (`batch_bytes`).
+    also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB); for
+    the known-cross rule its whitened joint covariance (`joint_bytes`); and, for any
+    method, a whole batch's arrays (`batch_bytes`).
 array_memory: the estimated memory of the arrays a tracker (its particles and a step's
     temporaries) or a scenario simulator (a run's truth and measurements) allocates,
     checked when it is configured, and of an Estimates' checked copies
@@ -77,6 +78,12 @@ def working_bytes(n: int, N: int, backend: str | None = None) -> float:
     workspace for backend "slsqp"."""
     slsqp = 10.0 * (N + 1) ** 2 if backend == "slsqp" else 0.0
     return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n + slsqp)
+
+
+def joint_bytes(n: int, N: int) -> float:
+    """Estimated bytes of known-cross's work arrays for one problem: the joint whitened
+    node by node and its Cholesky factor, (N n)^2 doubles each, and a copy of cross."""
+    return 8.0 * 3.0 * (N * n) ** 2
 
 
 def estimates_bytes(m: int, n: int) -> float:

@@ -308,6 +308,24 @@ def test_a_batch_beyond_memory_is_refused_before_anything_is_copied(method):
         fo.fuse_batch(means, covs, method)
 
 
+def test_known_cross_beyond_memory_is_refused_before_its_joint_is_made(monkeypatch):
+    """Its whitened joint covariance and Cholesky factor are (N n)^2 each: at N = 2,000,
+    n = 6, 2.3 GB besides the user's cross; the limit is checked before any of it."""
+    from fusion_opt.limits import batch_bytes, joint_bytes
+
+    N, n = 20, 6
+    assert batch_bytes(1, N, n) < 1e5 < joint_bytes(n, N)
+    monkeypatch.setattr(fo.limits, "working_memory", 1e5)
+    cross = np.zeros((N, N, n, n))
+    cross[np.arange(N), np.arange(N)] = np.eye(n)
+    with pytest.raises(fo.FusionSolverError, match=r"^method 'known-cross' failed with status "
+                                                   r"'memory_limit'.*whitened joint"):
+        fo.fuse(np.zeros((N, n)), np.tile(np.eye(n), (N, 1, 1)), "known-cross", cross=cross)
+    monkeypatch.setattr(fo.limits, "working_memory", 2 * joint_bytes(n, N))
+    r = fo.fuse(np.zeros((N, n)), np.tile(np.eye(n), (N, 1, 1)), "known-cross", cross=cross)
+    np.testing.assert_allclose(r.cov, np.eye(n) / N, rtol=1e-14)
+
+
 def test_an_overflow_names_the_problem_and_what_overflowed():
     """Regression: "the fused estimate overflows" for a batch, without the problem, where
     only the trace of 1e308 I (the objective) overflows."""
