@@ -271,6 +271,7 @@ NAIVE, FAST_CI, IFCI, ICI, EI, KNOWN_CROSS = 0, 1, 2, 3, 4, 5
 COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI,
             "known-cross": KNOWN_CROSS}
 OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
+_LAPACK_ABOVE = 64  # known-cross: the joint's factors by LAPACK above this order (N n)
 # known-cross's refusals of cross (`_cross_error` words them)
 CROSS_NONFINITE, CROSS_ASYMMETRIC, CROSS_DIAGONAL, CROSS_NOT_PD, CROSS_SINGULAR = range(4, 9)
 OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means too large, "
@@ -524,10 +525,9 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
         for a in range(m):
             for c in range(m):
                 norm2 += C[a, c] * C[a, c]
-        if not np.isfinite(norm2) or not cholesky(C, R):
+        if not np.isfinite(norm2) or not _joint_factor(C, R):
             where[0] = b
             return CROSS_NOT_PD
-        lower_inverse(R, C)  # C is free: R^-1, for the condition estimate
         inverse2 = 0.0
         for a in range(m):
             for c in range(a + 1):
@@ -574,6 +574,31 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
         if not (np.isfinite(obj[b]) and all_finite(cov[b])):
             return OVERFLOW
     return OK
+
+
+@jit
+def _joint_factor(C, R) -> bool:
+    """R = the Cholesky factor of C (m, m), and C = R^-1 (for the condition estimate);
+    False if C is not positive definite to rounding. Above _LAPACK_ABOVE rows by LAPACK
+    (numba's np.linalg), whose blocked algorithms are then the faster (both steps, warm:
+    64 against 89 us at m = 64, 550 against 740 at 128; 45 against 24 at 48), so that
+    known-cross at N = 256 nodes of n = 4 takes about what its numpy form took."""
+    m = C.shape[0]
+    if m <= _LAPACK_ABOVE:
+        if not cholesky(C, R):
+            return False
+        lower_inverse(R, C)
+        return True
+    try:
+        L = np.linalg.cholesky(C)
+    except Exception:  # noqa: BLE001 (numba raises LinAlgError, and catches only this)
+        return False
+    for a in range(m):
+        if not (L[a, a] > 0.0 and np.isfinite(L[a, a])):
+            return False
+    R[:, :] = L
+    C[:, :] = np.linalg.inv(L)
+    return True
 
 
 @jit
@@ -640,14 +665,18 @@ def _whitened_joint(F, cross, k, X, C):
 @jit
 def _lower_t_solve(L, Bt, X):
     """X = L^-T B for a lower-triangular L (m, m) and B (m, k) given as Bt (k, m), by back
-    substitution."""
+    substitution in rows of L (each x_i, once known, is taken from the rows above it:
+    column by column, L's stride made it 6.6 against 1.0 ms at m = 1024, k = 4)."""
     m, kk = L.shape[0], Bt.shape[0]
-    for j in range(kk):
-        for i in range(m - 1, -1, -1):
-            t = Bt[j, i]
-            for p in range(i + 1, m):
-                t -= L[p, i] * X[p, j]
-            X[i, j] = t / L[i, i]
+    for i in range(m):
+        for j in range(kk):
+            X[i, j] = Bt[j, i]
+    for i in range(m - 1, -1, -1):
+        for j in range(kk):
+            X[i, j] /= L[i, i]
+        for p in range(i):
+            for j in range(kk):
+                X[p, j] -= L[i, p] * X[i, j]
 
 
 @jit

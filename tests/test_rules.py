@@ -5,6 +5,7 @@ joint covariances (DESIGN §1), known-cross's checks of `cross`, and the glue of
 
 import numpy as np
 import pytest
+import scipy.linalg
 from conftest import joint
 from test_rules_exact import det, exact, inv, to_float
 
@@ -116,6 +117,29 @@ def test_known_cross_matches_exact_blue():
             P, m = exact_blue(means, S)
             assert_close(out.cov, P, 1e-12)
             assert_close(out.mean, m, 1e-11)
+
+
+@pytest.mark.parametrize("N, n", [(16, 4), (17, 4), (9, 8)])
+def test_known_cross_on_joints_of_order_past_64_matches_a_second_solver(N, n):
+    """Past N n = 64 the joint's Cholesky factor and inverse come from LAPACK
+    (rules._LAPACK_ABOVE): the BLUE against scipy's Cholesky solve of the joint itself,
+    unwhitened; a joint that is not positive definite is refused on both paths."""
+    rng = np.random.default_rng(N * n)
+    means, covs = problem(rng, N, n)
+    S = joint(rng, covs, rho=0.5)
+    r = fo.fuse(means, covs, "known-cross", cross=S)
+    c = scipy.linalg.cho_factor(flat(S))
+    H = np.tile(np.eye(n), (N, 1))
+    P = np.linalg.inv(H.T @ scipy.linalg.cho_solve(c, H))
+    m = P @ H.T @ scipy.linalg.cho_solve(c, means.ravel())
+    assert_close(r.cov, P, 1e-12)
+    assert_close(r.mean, m, 1e-11)
+    # whitened cross block sqrt(2) I: not a correlation
+    S[0, 1] = np.sqrt(2.0) * np.linalg.cholesky(covs[0]) @ np.linalg.cholesky(covs[1]).T
+    S[1, 0] = S[0, 1].T
+    with pytest.raises(fo.FusionInputError, match="cross: the joint covariance is not "
+                                                  "positive definite"):
+        fo.fuse(means, covs, "known-cross", cross=S)
 
 
 def test_hand_computed_fast_ci_and_ifci():
