@@ -38,7 +38,7 @@ from .runner import FIGURE_RUN
 
 POSITION = [0, 1]
 # The kernel parts its runs call (`runner.run_all`): it fuses with BCI and MBCI only, so no
-# rule's part ("rules", "pairs") is compiled for it.
+# rule's part ("rules", "cross", "pairs") is compiled for it.
 KERNELS = ("solve", "assemble", "conic", "fuse", "network")
 COLUMNS = ("mse", "mncm", "mse_pos", "mncm_pos", "ospa", "gospa", "card_err")
 PAPER = {"RBMCDA 1": (0.1430, 0.0578), "RBMCDA 2": (0.4716, 0.0616),

@@ -183,6 +183,10 @@ def test_after_the_parts_compiled_by_other_processes_a_user_compiles_nothing(tmp
         fo.fuse_batch(M[None], C[None])
         for method in ("fast-ci", "ifci"):
             fo.fuse(M, C, method)
+        fo.fuse(M[:2], C[:2], "ei")
+        X = np.zeros((4, 4, 3, 3))
+        X[range(4), range(4)] = C
+        fo.fuse(M, C, "known-cross", cross=X)
         fo.optimality_gap(C, np.full(4, 0.25))
         e = fo.Estimates(np.zeros((2, 3)), C[:2])  # two reports of a source at one point
         fo.associate({0: e, 1: e}, 1.0)
