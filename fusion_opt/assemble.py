@@ -227,18 +227,18 @@ def _fused_mean(F, means, w, Vt, Ri, rhs, mean, e: int):
 
 
 @jit
-def fuse_at(F, means, k, W, trace: bool, mean, cov, obj, shares) -> bool:
+def fuse_at(F, means, k, W, trace: bool, mean, cov, obj, shares) -> int:
     """The CI formula at fixed weights W (B, N), each >= 0 and of any sum (the rules'
     weights: naive's are all 1), without the solver's certificate or best-vertex rule, on
     the factors F (B, N, n, n) of the covariances scaled by 2^-k (B,) (`prepare`): mean
     (B, n) and cov (B, n, n) = (sum_i w_i Y_i)^-1 in the input's units, obj (B,) the
     criterion at it, and the gain shares tr(K_i) / n = w_i |F_i R^-1|_F^2 / n (B, N).
-    Returns False where Y(w) is not positive definite to rounding."""
+    Returns the first problem whose Y(w) is not positive definite to rounding, or -1."""
     B, N, n = means.shape
     ws = work(N, n)
     for b in range(B):
         if not factor(F[b], W[b], ws.At, ws.Vt, ws.R, ws.Ri)[1]:
-            return False
+            return b
         _mean_at(F[b], means[b], W[b], ws.Vt, ws.Ri, ws.rhs, mean[b])
         _covariance_at(ws.Ri, ws.P)
         scaled(ws.P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
@@ -247,7 +247,7 @@ def fuse_at(F, means, k, W, trace: bool, mean, cov, obj, shares) -> bool:
         gradient_at(F[b], ws.Ri, ws.P, ws.B, ws.g, False)  # g_i = -|F_i R^-1|_F^2
         for i in range(N):
             shares[b, i] = -W[b, i] * ws.g[i] / n
-    return True
+    return -1
 
 
 @jit

@@ -52,7 +52,14 @@ from .prepare import (
     SPREAD,
     prepare,
 )
-from .results import BatchFusionResult, FusionInputError, FusionResult, FusionSolverError, Status
+from .results import (
+    BatchFusionResult,
+    FusionInputError,
+    FusionResult,
+    FusionSolverError,
+    Status,
+    overflow_error,
+)
 from .scaling import conic_data
 from .simplex import to_simplex
 from .validation import CRITERIA, SYMMETRY_RTOL, definiteness_error, real_array, symmetrised
@@ -486,14 +493,8 @@ def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
 
 
 def _overflow(a, batch: bool) -> FusionInputError:
-    """What of which problem overflowed: its objective (a trace of 1e308 I) or the
-    estimate."""
-    estimate = np.isfinite(a.mean).all(axis=1) & np.isfinite(a.cov).all(axis=(1, 2))
-    b = int(np.flatnonzero(~(estimate & np.isfinite(a.stats[:, 0])))[0])
-    what = "objective (its trace)" if estimate[b] else "estimate"
-    return FusionInputError(
-        f"{f'problem {b}: ' if batch else ''}the fused {what} overflows float64 "
-        "(covariances or means too large, or MBCI scales too small for it to be represented)")
+    """What of which problem overflowed (`results.overflow_error`)."""
+    return overflow_error(a.mean, a.cov, a.stats[:, 0], batch)
 
 
 def _compiled(req, means, covs, a, batch):

@@ -51,6 +51,20 @@ class FusionSolverError(RuntimeError):
         return type(self), (self.backend, self.status, self.detail, self.role)
 
 
+def overflow_error(mean, cov, objective, batch: bool, b: int | None = None
+                   ) -> FusionInputError:
+    """What of problem b (default: the first of mean (B, n), cov (B, n, n), objective (B,)
+    that is not finite) overflowed: its objective (a trace of 1e308 I) or the estimate;
+    "problem b: " first in a batch."""
+    estimate = np.isfinite(mean).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+    if b is None:
+        b = int(np.flatnonzero(~(estimate & np.isfinite(objective)))[0])
+    what = "objective (its trace)" if estimate[b] else "estimate"
+    return FusionInputError(
+        f"{f'problem {b}: ' if batch else ''}the fused {what} overflows float64 "
+        "(covariances or means too large, or MBCI scales too small for it to be represented)")
+
+
 def in_context(exc: FusionInputError | FusionSolverError, before: str, after: str = ""):
     """A new error of exc's type whose message is exc's with `before` and `after` around
     it (a FusionSolverError keeps its backend, status and role; the words go around its

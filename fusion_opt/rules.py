@@ -92,7 +92,7 @@ from .linalg import (
     upper_inverse,
 )
 from .prepare import MAX_CONDITION, scaled
-from .results import FusionInputError, FusionSolverError, Status
+from .results import FusionInputError, FusionSolverError, Status, overflow_error
 from .validation import SYMMETRY_RTOL, real_array
 
 CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
@@ -163,28 +163,22 @@ def compiled(method, means, covs, F, k, trace: bool, cross=None, batch: bool = F
     B, N, n = means.shape
     W, shares, obj = np.empty((B, N)), np.empty((B, N)), np.empty(B)
     mean, cov = np.empty((B, n)), np.empty((B, n, n))
+    where = np.zeros(3, dtype=np.int64)
     rule = COMPILED[method]
     if rule == KNOWN_CROSS:
-        where, condition = np.zeros(3, dtype=np.int64), np.empty(B)
+        condition = np.empty(B)
         code = fuse_known_cross(F, means, covs, cross, k, trace, mean, cov, obj, shares,
                                 where, condition)
         if code >= CROSS_NONFINITE:
             raise _cross_error(code, where, condition, covs, cross, batch)
     elif method in PAIR_ONLY:
-        code = fuse_pair(rule, means, covs, k, trace, W, mean, cov, obj, shares)
+        code = fuse_pair(rule, means, covs, k, trace, W, mean, cov, obj, shares, where)
     else:
-        code = fuse_fixed(rule, F, means, covs, k, trace, W, mean, cov, obj, shares)
-    if code == NOT_PD and method in PAIR_ONLY:
-        raise FusionSolverError(method, "numerical_error", "the fused mean or covariance is "
-                                "not finite or not positive definite in double precision",
-                                role="method")
-    if code == NOT_PD:
-        raise _not_positive_definite(method)
-    if code == RATIO:
-        raise FusionSolverError(method, "numerical_error", "the covariances' ratio exceeds "
-                                "the double-precision range", role="method")
+        code = fuse_fixed(rule, F, means, covs, k, trace, W, mean, cov, obj, shares, where)
     if code == OVERFLOW:
-        raise FusionInputError(OVERFLOW_MESSAGE)
+        raise overflow_error(mean, cov, obj, batch, int(where[0]))
+    if code != OK:
+        raise _numerical_error(method, code, f"problem {where[0]}: " if batch else "")
     status = Status.OPTIMAL if method == "ici" else Status.CLOSED_FORM
     if method in ("naive", "known-cross", "ei"):
         return shares, mean, cov, obj, status, GAIN_SHARES
@@ -192,14 +186,17 @@ def compiled(method, means, covs, F, k, trace: bool, cross=None, batch: bool = F
 
 
 @jit
-def fuse_fixed(rule, F, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> int:
+def fuse_fixed(rule, F, means, covs, k, trace: bool, W, mean, cov, obj, shares, where) -> int:
     """naive, fast-ci and ifci on B problems (`compiled` says what each array holds): W receives
     the rule's weights (naive: 1; fast-ci: 1 / tr P_i over its sum, from the traces of
     the scaled covariances, whose ratios are the input's; ifci: its scores over their
-    sum), then `fuse_at` the estimate. Returns OK, NOT_PD or OVERFLOW."""
+    sum), then `fuse_at` the estimate. Returns OK, NOT_PD or OVERFLOW, and the problem
+    in where[0]."""
     B, N, n = means.shape
-    if rule == IFCI and not _ifci_scores(F, W):
-        return NOT_PD
+    if rule == IFCI:
+        where[0] = _ifci_scores(F, W)
+        if where[0] >= 0:
+            return NOT_PD
     for b in range(B):
         if rule == NAIVE:
             W[b, :] = 1.0
@@ -214,30 +211,33 @@ def fuse_fixed(rule, F, means, covs, k, trace: bool, W, mean, cov, obj, shares) 
                 W[b, i] = low / W[b, i]
         total = W[b].sum()
         if not 0.0 < total < np.inf:
+            where[0] = b
             return NOT_PD
         for i in range(N):
             W[b, i] /= total
-    if not fuse_at(F, means, k, W, trace, mean, cov, obj, shares):
+    where[0] = fuse_at(F, means, k, W, trace, mean, cov, obj, shares)
+    if where[0] >= 0:
         return NOT_PD
     for b in range(B):
         if not (np.isfinite(obj[b]) and all_finite(mean[b]) and all_finite(cov[b])):
+            where[0] = b
             return OVERFLOW
     return OK
 
 
 @jit
-def _ifci_scores(F, score) -> bool:
+def _ifci_scores(F, score) -> int:
     """score (B, N) = 1 - det(Y - Y_i) / det Y + det Y_i / det Y for factors F (B, N, n, n),
     Y = sum_i Y_i = R^T R (the QR of `factored.factor`, weights 1; module docstring):
     1 - prod_k (1 - alpha_k), alpha the squared singular values of F_i R^-1, by log1p and
-    expm1, and the triangular diagonals' ratios. False if a Y is not positive definite to
-    rounding."""
+    expm1, and the triangular diagonals' ratios. Returns the first problem whose Y is not
+    positive definite to rounding, or -1."""
     N, n = F.shape[1], F.shape[2]
     ws = work(N, n)
     ones, B = np.ones(N), np.empty((n, n))
     for b in range(F.shape[0]):
         if not factor(F[b], ones, ws.At, ws.Vt, ws.R, ws.Ri)[1]:
-            return False
+            return b
         for i in range(N):
             matmul(F[b, i], ws.Ri, B)
             sigma = np.linalg.svd(B)[1]
@@ -246,7 +246,7 @@ def _ifci_scores(F, score) -> bool:
                 kept += np.log1p(-min(sigma[k] * sigma[k], 1.0))  # -inf where alpha = 1
                 own += 2.0 * np.log(abs(F[b, i, k, k] / ws.R[k, k]))
             score[b, i] = -np.expm1(kept) + np.exp(own)
-    return True
+    return -1
 
 
 def ici(means, covs, criterion) -> RuleOutput:
@@ -268,14 +268,13 @@ PAIR_ONLY = frozenset({"ici", "ei"})
 # Each rule's kernel (`compiled`): the CI formula at fixed weights by `fuse_fixed`, ici and
 # ei by `fuse_pair`, known-cross by `fuse_known_cross`.
 NAIVE, FAST_CI, IFCI, ICI, EI, KNOWN_CROSS = 0, 1, 2, 3, 4, 5
+FIXED_WEIGHTS = frozenset({"naive", "fast-ci", "ifci"})
 COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI,
             "known-cross": KNOWN_CROSS}
 OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
 _LAPACK_ABOVE = 64  # known-cross: the joint's factors by LAPACK above this order (N n)
 # known-cross's refusals of cross (`_cross_error` words them)
 CROSS_NONFINITE, CROSS_ASYMMETRIC, CROSS_DIAGONAL, CROSS_NOT_PD, CROSS_SINGULAR = range(4, 9)
-OVERFLOW_MESSAGE = ("the fused estimate overflows float64 (covariances or means too large, "
-                    "or MBCI scales too small for the result to be represented)")
 
 
 def _factors(covs):
@@ -300,17 +299,24 @@ def gain_mean(means, K, shares, mean):
         mean[a] = means[r, a] + np.ldexp(t, e)
 
 
-def _not_positive_definite(method) -> FusionSolverError:
-    return FusionSolverError(method, "numerical_error", "the sum of the informations is not "
-                             "positive definite in double precision", role="method")
+def _numerical_error(method, code, problem: str) -> FusionSolverError:
+    """A rule's NOT_PD (in the scaled units) or RATIO, for the problem named by `problem`."""
+    if code == RATIO:
+        what = "the covariances' ratio exceeds the double-precision range"
+    elif method in FIXED_WEIGHTS:
+        what = "the sum of the informations is not positive definite in double precision"
+    else:
+        what = "the fused covariance is not positive definite in double precision"
+    return FusionSolverError(method, "numerical_error", problem + what, role="method")
 
 
 @jit
-def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> int:
+def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares, where) -> int:
     """ICI or EI on B pairs, means (B, 2, n) and covs (B, 2, n, n) (`compiled` says what the
     outputs hold), in the basis of `_pencil`, per axis (module docstring). Returns OK,
-    NOT_PD (a result not finite or not positive definite in the scaled units), RATIO (the
-    covariances' ratio beyond float64) or OVERFLOW (the result beyond it in the input's)."""
+    NOT_PD (a covariance or weights not finite or not positive definite in the scaled
+    units), RATIO (the covariances' ratio beyond float64) or OVERFLOW (the result beyond it
+    in the input's), and the problem in where[0]."""
     B, n = means.shape[0], means.shape[2]
     S, L, K = np.empty((2, n, n)), np.empty((2, n, n)), np.empty((2, n, n))
     T, Tinv, P, M = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
@@ -319,6 +325,7 @@ def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> i
         for i in range(2):
             scaled(covs[b, i], 1.0, k[b], S[i])
         sigma = _pencil(S, L, M, T, Tinv)
+        where[0] = b
         if sigma.min() == 0.0:
             return RATIO
         if rule == ICI:
@@ -338,16 +345,24 @@ def fuse_pair(rule, means, covs, k, trace: bool, W, mean, cov, obj, shares) -> i
         if rule == EI:
             W[b, 0], W[b, 1] = shares[b, 0], shares[b, 1]
         gain_mean(means[b], K, shares[b], mean[b])
-        if not cholesky(P, L[0]) or not all_finite(mean[b]) or not np.isfinite(W[b]).all():
+        if not cholesky(P, L[0]) or not np.isfinite(W[b]).all():
             return NOT_PD
-        scaled(P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
-        if trace:
-            obj[b] = np.ldexp(np.trace(P), k[b])
-        else:
-            obj[b] = 2.0 * np.log(np.diag(L[0])).sum() + n * k[b] * _LN2
-        if not (np.isfinite(obj[b]) and all_finite(cov[b])):
+        if not _unscaled(P, L[0], k[b], trace, mean[b], cov[b], obj, b):
             return OVERFLOW
     return OK
+
+
+@jit
+def _unscaled(P, L, k, trace: bool, mean, cov, obj, b) -> bool:
+    """cov = sym(P) 2^k in the input's units and obj[b] the criterion at it (L the Cholesky
+    factor of P); False where it, or the mean (computed in the input's units), overflows
+    float64."""
+    scaled(P, 1.0, -k, cov)
+    if trace:
+        obj[b] = np.ldexp(np.trace(P), k)
+    else:
+        obj[b] = 2.0 * np.log(np.diag(L)).sum() + P.shape[0] * k * _LN2
+    return np.isfinite(obj[b]) and all_finite(cov) and all_finite(mean)
 
 
 @jit
@@ -564,14 +579,10 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
                     t += Ui[a, d] * Ui[c, d]
                 P[a, c] = t
         gain_mean(means[b], K, shares[b], mean[b])
-        if not cholesky(P, L) or not all_finite(mean[b]) or not np.isfinite(shares[b]).all():
+        where[0] = b
+        if not cholesky(P, L) or not np.isfinite(shares[b]).all():
             return NOT_PD
-        scaled(P, 1.0, -k[b], cov[b])  # sym(P) 2^k: back to the input's units
-        if trace:
-            obj[b] = np.ldexp(np.trace(P), k[b])
-        else:
-            obj[b] = 2.0 * np.log(np.diag(L)).sum() + n * k[b] * _LN2
-        if not (np.isfinite(obj[b]) and all_finite(cov[b])):
+        if not _unscaled(P, L, k[b], trace, mean[b], cov[b], obj, b):
             return OVERFLOW
     return OK
 

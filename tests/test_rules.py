@@ -316,15 +316,18 @@ def test_the_fixed_weight_kernel_reports_informations_that_do_not_factor(method)
     F[0, 0, 0, 0] = 1.0
     covs = np.tile(np.eye(2), (1, 2, 1, 1))
     out = [np.empty(s) for s in ((1, 2), (1, 2), (1, 2, 2), (1,), (1, 2))]
+    where = np.zeros(3, np.int64)
     assert rules.fuse_fixed(rules.COMPILED[method], F, np.zeros((1, 2, 2)), covs,
-                            np.zeros(1, np.int64), True, *out) == rules.NOT_PD
+                            np.zeros(1, np.int64), True, *out, where) == rules.NOT_PD
+    assert where[0] == 0
 
 
 @pytest.mark.parametrize("method", ["naive", "fast-ci", "ifci", "ici", "ei"])
 @pytest.mark.parametrize("code, error, message", [
     ("NOT_PD", fo.FusionSolverError, "^method '{}' failed with status 'numerical_error'"),
     ("RATIO", fo.FusionSolverError, "^method '{}' failed .* the covariances' ratio exceeds"),
-    ("OVERFLOW", fo.FusionInputError, "^the fused estimate overflows float64")])
+    ("OVERFLOW", fo.FusionInputError, r"^the fused (estimate|objective \(its trace\)) "
+                                      "overflows float64")])
 def test_a_compiled_rule_raises_for_what_its_kernel_reports(method, code, error, message,
                                                             monkeypatch):
     """What the kernel reports becomes the rule's error, naming it, without a warning from

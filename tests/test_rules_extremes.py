@@ -169,3 +169,41 @@ def test_known_cross_refuses_a_joint_covariance_beyond_the_condition_limit():
     with pytest.raises(fo.FusionInputError, match="numerically singular"):
         fuse(1 - 1e-14)
     np.testing.assert_allclose(fuse(1 - 1e-10).cov, (1 - 0.5e-10) * np.eye(2), rtol=1e-6)
+
+
+def _independent(covs):
+    """The joint covariance (N, N, n, n) of independent nodes: known-cross is naive."""
+    N = len(covs)
+    cross = np.zeros((N, N, *covs.shape[1:]))
+    cross[np.arange(N), np.arange(N)] = covs
+    return cross
+
+
+@pytest.mark.parametrize("name", list(RULES))
+def test_an_overflow_in_a_batch_names_the_problem_and_what_overflowed(name):
+    """Fuzz J2: a rule's overflow in fuse_batch said neither which problem nor whether the
+    objective (a trace of 2e308 and more) or the estimate overflowed, as BCI's does."""
+    B, N, n = 4, 2, 4
+    covs = np.tile(np.eye(n), (B, N, 1, 1))
+    covs[2] *= 1e308  # every rule's P is at least 0.5e308 I: a trace of 2e308 or more
+    args = {"cross": np.stack([_independent(c) for c in covs])} if name == "known-cross" else {}
+    with pytest.raises(fo.FusionInputError,
+                       match=r"^problem 2: the fused objective \(its trace\) overflows"):
+        fo.fuse_batch(np.zeros((B, N, n)), covs, name, **args)
+
+
+@pytest.mark.parametrize("name", list(RULES))
+def test_a_fused_mean_beyond_float64_is_an_overflow_for_every_rule(name):
+    """Fuzz J3: where only the fused mean leaves float64 (its exact value about 3.4e308),
+    ici, ei and known-cross said "the fused mean or covariance is not finite or not
+    positive definite" (a FusionSolverError) where the fixed-weight rules said the estimate
+    overflows (FusionInputError)."""
+    P = np.array([[[1, .999, 0], [.999, 1, 0], [0, 0, 1]],
+                  [[1, -.999, 0], [-.999, 1, 0], [0, 0, 1]]])
+    m = np.array([[1.7e308, -1.7e308, 0], [1.7e308, 1.7e308, 0]])
+    args = {"cross": _independent(P)} if name == "known-cross" else {}
+    with pytest.raises(fo.FusionInputError, match=r"^the fused estimate overflows"):
+        fo.fuse(m, P, name, **args)
+    with pytest.raises(fo.FusionInputError, match=r"^problem 1: the fused estimate overflows"):
+        fo.fuse_batch(np.stack([m / 1e300, m]), np.stack([P, P]), name,
+                      **{k: np.stack([v, v]) for k, v in args.items()})
