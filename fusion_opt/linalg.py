@@ -287,12 +287,15 @@ def lower_solve(L, B, X):
     and B (n, k) (X may not be L or B): exact where B = L (the identity), as LAPACK's
     dtrtrs, which a product with L^-1 is not."""
     n, k = B.shape
-    for j in range(k):
-        for i in range(n):
-            t = B[i, j]
-            for p in range(i):
-                t -= L[i, p] * X[p, j]
-            X[i, j] = t / L[i, i]
+    for i in range(n):  # by rows of X (each entry's sums in the same order as by columns,
+        for j in range(k):  # which strode through X: 3 times slower at n = 200, k = 100)
+            X[i, j] = B[i, j]
+        for p in range(i):
+            a = L[i, p]
+            for j in range(k):
+                X[i, j] -= a * X[p, j]
+        for j in range(k):
+            X[i, j] /= L[i, i]
 
 
 @jit
