@@ -259,3 +259,30 @@ def test_pair_rules_of_nodes_1e560_apart_give_the_better_node(method, a, b):
     # ICI's axes are exp(log-sums), exact to about eps |log mu| = 1.4e-13 relative here
     np.testing.assert_allclose(r.cov, covs[better], rtol=1e-12)
     np.testing.assert_allclose(r.mean, means[better], rtol=1e-14)
+
+
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+@pytest.mark.parametrize("method", ["ici", "ei"])
+def test_a_node_that_wins_outright_is_returned_as_given(method, criterion):
+    """Fuzz J4: where one node's gain is 1 on every axis (ICI at w = 0, EI won on every
+    axis by one node), the rule rebuilt its covariance from the pencil, 25 ulps off, 2.6e-3
+    in the node's own metric at condition 1e13, and reported a log det up to 6.6e-5 worse
+    than the node's own. Now the node itself, mean, covariance and objective, bit for bit
+    BCI's vertex, whichever node it is."""
+    means = np.array([[1.5926766993746688, -0.29160567967055817, -1.3519203071885877],
+                      [0.37059110358286773, -0.10173810041909909, 0.34765699069739425]])
+    Pa = np.array([[2.4365542182216903e-03, 1.3705168397970324e-02, -1.6074024007216843e-03],
+                   [1.3705168397970324e-02, 7.7092489429849309e-02, -9.0416514004402239e-03],
+                   [-1.6074024007216843e-03, -9.0416514004402239e-03, 1.0604361247946545e-03]])
+    Pb = np.array([[1.0213000355339727e+01, 1.7868458586828371e+01, -1.5377769852601791e+01],
+                   [1.7868458586828371e+01, 3.2308613151905462e+01, -2.7055441764466224e+01],
+                   [-1.5377769852601791e+01, -2.7055441764466224e+01, 2.3183375313644369e+01]])
+    for order in ([0, 1], [1, 0]):  # cond(Pa) = 5.6e11, Pa below Pb on every axis
+        covs = np.array([Pa, Pb])[order]
+        r = fo.fuse(means[order], covs, method, criterion)
+        vertex = fo.bci(means[order], covs, criterion)
+        win = order.index(0)
+        np.testing.assert_array_equal(r.cov, Pa)
+        np.testing.assert_array_equal(r.mean, means[0])
+        np.testing.assert_array_equal(r.weights, np.eye(2)[win])
+        assert vertex.weights[win] == 1.0 and r.objective == vertex.objective
