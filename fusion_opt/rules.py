@@ -65,7 +65,9 @@ How the numbers stay finite and accurate:
 - known-cross whitens each node by its Cholesky factor (the joint becomes a correlation
   matrix C with identity diagonal blocks) and solves the least-squares form by QR.
 - The mean is m_r + sum_i K_i (m_i - m_r), r the node of the largest gain share, with the
-  differences scaled by a power of two, so that no product overflows.
+  differences scaled by a power of two, so that no product overflows; known-cross forms
+  the sum without its gains, which can fall below float64's range where their products
+  with the means do not (`_blue_mean`). (naive, fast-ci and ifci: from the QR, above.)
 A rule that still meets a non-finite or non-positive-definite result raises
 FusionSolverError(method, "numerical_error", ..., role="method"); it never returns one.
 
@@ -88,6 +90,7 @@ from .factored import factor, work
 from .linalg import (
     cholesky,
     copy,
+    fill,
     householder,
     jit,
     lower_inverse,
@@ -567,7 +570,7 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
     At, Zt, Vt, G = np.empty((n, m)), np.empty((n, m)), np.empty((n, m)), np.empty((m, n))
     U, Ui, P, L = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
     X = np.empty((2, n, n))
-    K = np.empty((N, n, n))
+    K, u = np.empty((N, n, n)), np.empty((2, n))
     for b in range(B):
         code = _check_cross(covs[b], cross[b], k[b], where)
         if code != OK:
@@ -610,13 +613,49 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
             matmul_t(P, G[i * n:(i + 1) * n], X[0])  # P G_i^T
             matmul(X[0], F[b, i], K[i])
             shares[b, i] = np.trace(K[i]) / n
-        gain_mean(means[b], K, shares[b], mean[b])
+        _blue_mean(F[b], G, P, means[b], shares[b], u, mean[b])
         where[0] = b
         if not cholesky(P, L) or not np.isfinite(shares[b]).all():
             return NOT_PD
         if not _unscaled(P, L, k[b], trace, mean[b], cov[b], obj, b):
             return OVERFLOW
     return OK
+
+
+@jit
+def _blue_mean(F, G, P, means, shares, u, mean):
+    """known-cross's mean m_r + P sum_i G_i^T F_i (m_i - m_r) (r the node of the largest
+    gain share; G = R^-T Z, so that P G_i^T F_i = K_i) without forming the gains: a gain
+    below float64's range (2^-1100 for a node 2^1100 above another) dropped its node's
+    share of the mean, 2^-500 of 2^-499, where the product is in range (fuzz J5). The
+    differences in units of 2^e (e the exponent of the largest |mean|) and the sum u
+    normalised before P multiplies it, so that nothing overflows or underflows before the
+    result; u (2, n) scratch."""
+    N, n = means.shape
+    r = np.argmax(shares)
+    e = math.frexp(np.abs(means).max())[1]
+    v, y = u[0], u[1]
+    fill(v, 0.0)
+    for i in range(N):
+        for a in range(n):  # y = F_i (m_i - m_r) 2^-e
+            t = 0.0
+            for c in range(a + 1):
+                t += F[i, a, c] * (np.ldexp(means[i, c], -e) - np.ldexp(means[r, c], -e))
+            y[a] = t
+        for c in range(n):  # v += G_i^T y
+            t = 0.0
+            for a in range(n):
+                t += G[i * n + a, c] * y[a]
+            v[c] += t
+    top = np.abs(v).max()
+    eu = math.frexp(top)[1] if top > 0.0 and np.isfinite(top) else 0
+    for c in range(n):
+        y[c] = np.ldexp(v[c], -eu)
+    for a in range(n):
+        t = 0.0
+        for c in range(n):
+            t += P[a, c] * y[c]
+        mean[a] = means[r, a] + np.ldexp(t, e + eu)
 
 
 @jit

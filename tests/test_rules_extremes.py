@@ -207,3 +207,18 @@ def test_a_fused_mean_beyond_float64_is_an_overflow_for_every_rule(name):
     with pytest.raises(fo.FusionInputError, match=r"^problem 1: the fused estimate overflows"):
         fo.fuse_batch(np.stack([m / 1e300, m]), np.stack([P, P]), name,
                       **{k: np.stack([v, v]) for k, v in args.items()})
+
+
+def test_known_cross_keeps_the_share_of_a_node_whose_gain_underflows():
+    """Fuzz J5: nodes 2^1100 apart in scale (within what prepare accepts): the far node's
+    gain, 2^-1100, was below float64's range and its share of the mean, 2^-500 of the
+    exact 2^-499 (naive's, and the BLUE's for an independent cross), was lost; the mean
+    is now formed without the gains."""
+    Pa, Pb = np.ldexp(np.eye(1), -1000), np.ldexp(np.eye(1), 100)
+    means = np.array([[np.ldexp(1.0, -500)], [np.ldexp(1.0, 600)]])
+    cross = np.zeros((2, 2, 1, 1))
+    cross[0, 0], cross[1, 1] = Pa, Pb
+    exact = np.ldexp(1.0, -499)  # (2^1000 2^-500 + 2^-100 2^600) / (2^1000 + 2^-100)
+    for method, args in (("naive", {}), ("known-cross", {"cross": cross})):
+        r = fo.fuse(means, np.array([Pa, Pb]), method, **args)
+        assert r.mean[0] == exact, (method, r.mean[0] / exact)
