@@ -23,7 +23,7 @@ import numpy as np
 
 from .limits import estimates_bytes, fits
 from .results import FusionInputError
-from .validation import check_spd, finite_array, finite_real, hashable, real_array
+from .validation import check_spd, finite_array, finite_real, hashable, real_array, short_repr
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,28 +108,55 @@ def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
-    """Integer track ids (m,) as int64, unique unless told; arange(m) when None."""
+    """Integer track ids (m,) as int64, unique unless told; arange(m) when None. An integer
+    or float array is read as it is (floats must be whole numbers); any other container
+    (a list, an object array from a table, long doubles) id by id, each exactly, so that
+    no id above 2^53 is rounded through a float on the way (fuzz K1: 2^62 + 1 became 2^62
+    and could merge with another id)."""
     if ids is None:
         return np.arange(m, dtype=np.int64)
+    numeric = isinstance(ids, np.ndarray) and ids.dtype.kind in "iuf" and ids.dtype.itemsize <= 8
     if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
-            _beyond_int64(ids) is not None:  # named exactly, before floats round them
-        _refuse_range(ids)
+            _beyond_int64(ids) is not None:  # named exactly, before real_array's float range
+        raise _out_of_range(_beyond_int64(ids))
     try:
-        a = real_array(ids, "ids")
-    except FusionInputError as exc:  # strings, ragged lists, ...: say what ids must be
+        a = real_array(ids, "ids")  # strings, booleans, complex, ragged: refused by name
+    except FusionInputError as exc:
         raise FusionInputError(f"ids must be integers (map other track names to integers): "
                                f"{exc}") from None
-    if np.asarray(ids).dtype.kind in "iu":
-        a = np.asarray(ids)  # integers as given: as floats, ids above 2^53 would merge
     if a.shape != (m,):
         raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
-        raise FusionInputError("ids must be integers")
-    if m and not _fit_int64(a):
-        _refuse_range(a.tolist())
-    out = a.astype(np.int64)
+    out = _numeric_ids(ids) if numeric else _exact_ids(ids)
     if unique and len(np.unique(out)) != m:
         raise FusionInputError(f"ids must be unique within one Estimates, got {out.tolist()}")
+    return out
+
+
+def _numeric_ids(a: np.ndarray) -> np.ndarray:
+    """An integer or float64/32 array of ids (m,) as int64: whole numbers within int64."""
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
+        raise FusionInputError("ids must be integers")
+    if a.size and not _fit_int64(a):
+        raise _out_of_range(_beyond_int64(a.tolist()))
+    return a.astype(np.int64)
+
+
+def _exact_ids(ids) -> np.ndarray:
+    """Ids (m,) of another container as int64, each converted by itself, exactly: a value
+    that is not a whole number, or not within int64, is refused by name."""
+    values = np.asarray(ids, dtype=object).reshape(-1)
+    out = np.empty(values.size, dtype=np.int64)
+    for k, v in enumerate(values.tolist()):
+        try:
+            i = int(v)
+            whole = i == v
+        except (TypeError, ValueError, OverflowError):  # nan, inf
+            whole = False
+        if not whole:
+            raise FusionInputError(f"ids must be integers, got {_shown(v)} at index {k}")
+        if not -(2**63) <= i < 2**63:
+            raise _out_of_range(v)
+        out[k] = i
     return out
 
 
@@ -146,10 +173,17 @@ def _beyond_int64(values):
     return next((v for v in values if not -(2**63) <= v < 2**63), None)
 
 
-def _refuse_range(values) -> None:
-    """Raises for the first of values (Python numbers) outside int64."""
-    raise FusionInputError(f"ids must fit in a signed 64-bit integer (-2^63 to 2^63 - 1), "
-                           f"got {_beyond_int64(values)!r}")
+def _out_of_range(value) -> FusionInputError:
+    """The refusal of an id outside int64."""
+    return FusionInputError(f"ids must fit in a signed 64-bit integer (-2^63 to 2^63 - 1), "
+                            f"got {_shown(value)}")
+
+
+def _shown(value) -> str:
+    """A number as a message shows it: numpy's scalars as their value, not np.float64(...),
+    and an int of 400 digits shortened (`short_repr`)."""
+    return short_repr(value.item() if isinstance(value, np.generic) and
+                      value.dtype.itemsize <= 8 else value)
 
 
 def check_forward(time: float | None, last: float | None, name: str = "time") -> None:

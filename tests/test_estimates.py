@@ -128,3 +128,21 @@ def test_every_int64_id_is_kept_and_one_beyond_is_refused_with_its_value():
         with pytest.raises(fo.FusionInputError, match=rf"ids must fit in a signed 64-bit "
                            rf"integer \(-2\^63 to 2\^63 - 1\), got {re.escape(shown)}$"):
             fo.Estimates(means, covs, bad)
+
+
+def test_ids_above_2_53_from_any_container_are_kept_exactly():
+    """Fuzz K1: ids in an object array (a table's column), a list mixing numpy integers with
+    a uint64 or a float, or long doubles went through float64: 2^62 + 1 became 2^62, and
+    two ids 1 apart were refused as equal numbers the caller never passed."""
+    means, covs = np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
+    big = 2**62 + 1
+    for ids in (np.array([big, 5], dtype=object), [big, np.uint64(5)], [np.int64(big), 5.0],
+                np.array([big, 5], dtype=np.longdouble), (big, np.int32(5))):
+        assert fo.Estimates(means, covs, ids).ids.tolist() == [big, 5], ids
+    assert fo.Estimates(means, covs, np.array([big, big - 1], dtype=object)).ids.tolist() \
+        == [big, big - 1]
+    for bad, said in (([np.float64(1.5), 2], "got 1.5 at index 0"),
+                      (np.array([2, np.nan], dtype=object), "got nan at index 1"),
+                      ([np.uint64(2**63), 1], r"64-bit integer .*got 9223372036854775808$")):
+        with pytest.raises(fo.FusionInputError, match=said):
+            fo.Estimates(means, covs, bad)
