@@ -256,7 +256,8 @@ def test_a_step_that_overflows_is_refused_and_the_state_kept():
     covariances, and `step` kept the inf state before the Estimates refused it."""
     I = np.eye(2)
     model = models.LinearGaussian(1e200 * I, I, I, I)
-    with pytest.raises(FusionInputError, match=r"scans\[0\]: step 1's estimate is not finite"):
+    with pytest.raises(FusionInputError, match=r"scans\[0\]: step 1's estimate cannot be "
+                       r"represented in float64 \(not finite"):
         kalman.run([[]] * 3, model, np.zeros(2), I)
     kf = kalman.KalmanFilter(model, np.zeros(2), I)
     with pytest.raises(FusionInputError, match="scan: step 1's estimate"):
@@ -264,6 +265,25 @@ def test_a_step_that_overflows_is_refused_and_the_state_kept():
     assert kf.steps == 0
     np.testing.assert_array_equal(kf.cov, I)
     np.testing.assert_array_equal(kf.mean, np.zeros(2))
+
+
+def test_a_step_whose_report_an_estimates_would_refuse_is_refused_and_the_state_kept():
+    """Fuzz K2: a covariance diag(1e-300, 1e-300, 1e300, 1e300) passed the filter's own
+    check (numpy's Cholesky), the filter stepped (state, step count and time) and only its
+    Estimates refused it, naming neither tracker nor step; every later step failed alike."""
+    I4 = np.eye(4)
+    model = models.LinearGaussian(I4, np.zeros((4, 4)), np.eye(2, 4), 1e-300 * np.eye(2))
+    kf = kalman.KalmanFilter(model, np.zeros(4), 1e300 * I4)
+    with pytest.raises(FusionInputError, match=r"^scan: step 1's estimate cannot be represented "
+                                               r"in float64 \(covs of estimate 0 is numerically "
+                                               r"singular"):
+        kf.step([[1.0, 2.0]], time=1.0)
+    assert kf.steps == 0
+    np.testing.assert_array_equal(kf.cov, 1e300 * I4)
+    np.testing.assert_array_equal(kf.mean, np.zeros(4))
+    kf.step([], time=0.5)  # the refused step's time was not kept either
+    with pytest.raises(FusionInputError, match=r"scans\[0\]: step 1's estimate"):
+        kalman.run([[[1.0, 2.0]]], model, np.zeros(4), 1e300 * I4)  # the same rule as step's
 
 
 def test_cross_covariance_step_refuses_what_is_no_joint_covariance():

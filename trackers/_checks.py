@@ -125,18 +125,24 @@ def read_only(a: np.ndarray) -> np.ndarray:
 
 def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -> None:
     """Refuses a filter's step whose estimates, means (..., n) and covs (..., n, n), are not
-    finite with positive-definite (Cholesky) covariances, before the filter keeps its new
-    state, which is then the one before the step. float64 cannot represent such a step: a
-    measurement ``name`` far beyond the model's scale (a mixture's spread falls below the
-    rounding of its means), or a model and prior at float64's limits."""
-    with np.errstate(invalid="ignore"):
-        if np.isfinite(means).all() and np.isfinite(covs).all() \
-                and _fo.cholesky_ok(covs).all():
+    finite, or whose covariances an `Estimates` would refuse (`validation.check_spd`: not
+    symmetric, not positive definite, or numerically singular), before the filter keeps its
+    new state, which is then the one before the step: the step's report is then always an
+    Estimates (fuzz K2: diag(1e-300, 1e300) passed numpy's Cholesky, the filter stepped,
+    and only its report was refused). float64 cannot represent such a step: a measurement
+    ``name`` far beyond the model's scale (a mixture's spread falls below the rounding of
+    its means), or a model and prior at float64's limits."""
+    reason = "not finite"
+    if np.isfinite(means).all() and np.isfinite(covs).all():
+        try:
+            _fo.check_spd(covs.reshape(-1, *covs.shape[-2:]), "covs", item="estimate")
             return
+        except FusionInputError as exc:
+            reason = str(exc)
     raise FusionInputError(
-        f"{name}: step {steps + 1}'s estimate is not finite, or its covariance not positive "
-        "definite, in float64 (a measurement far beyond the model's scale, or a model and "
-        "prior at float64's limits); the filter's state is the one before this step")
+        f"{name}: step {steps + 1}'s estimate cannot be represented in float64 ({reason}: a "
+        "measurement far beyond the model's scale, or a model and prior at float64's "
+        "limits); the filter's state is the one before this step")
 
 
 def generator(name: str, value) -> np.random.Generator:
