@@ -40,8 +40,11 @@ def test_time_and_name_are_stamped(kind):
     f = make(kind, name="node 3")
     e = f.step([], time=0.5)
     assert (e.time, e.node) == (0.5, "node 3")
-    e = f.step([])
-    assert e.time == (0.02 if kind == "rbmcda" else None)  # RBMCDA's clock: (k + 1) dt
+    if kind != "rbmcda":
+        assert f.step([]).time is None
+        return
+    g = make(kind)  # RBMCDA's clock where no time is given: (k + 1) dt
+    assert [g.step([]).time for _ in range(2)] == [0.01, 0.02]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -84,3 +87,19 @@ def test_a_step_back_in_time_is_refused_and_changes_nothing(kind):
         f.step([[0.31, -0.2]], time=1.0)
     assert f.steps == 1
     assert f.step([], time=5.0).time == 5.0  # the same time again is a step forward of 0
+
+
+def test_rbmcda_refuses_a_clock_time_before_the_last_given_one_and_changes_nothing():
+    """Fuzz K3: with time=None RBMCDA stamps its clock (k + 1) dt; after time=100 a step
+    without one was stamped 0.02 (time going back), and a later time=50 was accepted,
+    checked against the clock instead of the 100 stamped before."""
+    f = make("rbmcda")
+    f.step([], time=100.0)
+    with pytest.raises(FusionInputError, match=r"^time: without one, step 2 is stamped with "
+                                               r"its clock time 2 x dt = 0.02, before the time "
+                                               r"of the step before it, 100"):
+        f.step([])
+    assert f.steps == 1
+    with pytest.raises(FusionInputError, match="time = 50.0 is before the previous step's"):
+        f.step([], time=50.0)
+    assert f.step([], time=100.0).time == 100.0 and f.steps == 2

@@ -434,12 +434,23 @@ class RBMCDA:
     def step(self, scan, time=None) -> Estimates:
         """Predict, draw deaths, associate every measurement of ``scan`` (k, d), report the
         MAP particle's targets with their ids."""
-        time = _checks.step_time(time, self._time)
+        time = _checks.step_time(time, self._time) if time is not None else self._clock()
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
-        if time is None:
-            time = self._state.k * self.params.dt
         self._time = time
         return Estimates(r.means, r.covs, r.ids, time, self.name)
+
+    def _clock(self) -> float:
+        """The next step's clock time (k + 1) dt, stamped where no time is given; refused
+        where it is before the time stamped on the last step (fuzz K3: after time=100, a
+        step without one was stamped 2.0, and a later time=50 was then accepted)."""
+        k = self._state.k + 1
+        clock = k * self.params.dt
+        if self._time is not None and clock < self._time:
+            raise FusionInputError(
+                f"time: without one, step {k} is stamped with its clock time {k} x dt = "
+                f"{clock:g}, before the time of the step before it, {self._time:g}: give "
+                "this step's time (or no step one)")
+        return clock
 
 
 def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Generator,
