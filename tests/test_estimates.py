@@ -146,3 +146,26 @@ def test_ids_above_2_53_from_any_container_are_kept_exactly():
                       ([np.uint64(2**63), 1], r"64-bit integer .*got 9223372036854775808$")):
         with pytest.raises(fo.FusionInputError, match=said):
             fo.Estimates(means, covs, bad)
+
+
+def test_an_integer_time_beyond_2_53_is_refused_everywhere_a_time_is_given():
+    """Fuzz K6: nanoseconds since 1970 (1.7e18) became a float 128 ns off; two stamps 60 ns
+    apart merged and a step back in time passed the forward check. Refused, with what to
+    give instead; 2^53 itself and floats of any size are times as before."""
+    from trackers import kalman, models
+
+    t = 1_700_000_000_000_000_100
+    one = (np.zeros((1, 2)), np.eye(2)[None], None)
+    for stamp in (t, np.int64(t), -t, 2**53 + 1):
+        with pytest.raises(fo.FusionInputError, match=r"is an integer beyond 2\^53.*seconds"):
+            fo.Estimates(*one, stamp)
+    assert fo.Estimates(*one, 2**53).time == 2.0**53
+    assert fo.Estimates(*one, float(t)).time == float(t)
+    node = fo.ProcessingNode(["a"], method="bci", threshold=1.0)
+    with pytest.raises(fo.FusionInputError, match="integer beyond 2"):
+        node.step({"a": fo.Estimates(*one)}, time=np.int64(t))
+    kf = kalman.KalmanFilter(models.LinearGaussian(np.eye(2), np.eye(2), np.eye(2), np.eye(2)),
+                             np.zeros(2), np.eye(2))
+    with pytest.raises(fo.FusionInputError, match="integer beyond 2"):
+        kf.step([], time=t)
+    assert kf.steps == 0

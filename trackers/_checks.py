@@ -15,7 +15,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt import validation as _fo
-from fusion_opt.estimates import check_forward
+from fusion_opt.estimates import check_exact_time, check_forward
 from fusion_opt.limits import fits  # noqa: F401 (the trackers call _checks.fits)
 
 
@@ -112,6 +112,7 @@ def step_time(value, last: float | None) -> float | None:
     """The time stamped on a step's Estimates: None or a finite real number, not before
     last, the time stamped on the previous step (None: none was)."""
     time = None if value is None else finite("time", value)
+    check_exact_time(value)
     check_forward(time, last)
     return time
 
