@@ -49,6 +49,7 @@ from .backends import BACKENDS
 from .batch import fuse_batch
 from .estimates import Estimates, check_forward, check_time
 from .fusion import fuse
+from .limits import batch_bytes, limits
 from .results import FusionInputError, FusionSolverError, in_context
 from .validation import finite_real, hashable
 
@@ -116,29 +117,40 @@ class ProcessingNode:
         return fused
 
     def _fuse(self, groups: list[Group]) -> tuple[np.ndarray, np.ndarray]:
-        """Fused means (G, n) and covs (G, n, n): one fuse_batch call per group size."""
+        """Fused means (G, n) and covs (G, n, n): one fuse_batch call per group size, in
+        chunks whose arrays take at most half of limits.working_memory (fuzz K4: 1,500
+        groups of 8 estimates of n = 60 made one batch of 1.3 GB, refused as a solver's
+        memory_limit; fuse_batch gives each problem what fuse gives it, so chunks change
+        no number)."""
         n = self._n
         means, covs = np.empty((len(groups), n)), np.empty((len(groups), n, n))
         by_size = defaultdict(list)
         for i, g in enumerate(groups):
             by_size[len(g)].append(i)
-        for size, idx in by_size.items():
-            M = np.stack([groups[i].means for i in idx])  # (B, size, n)
-            C = np.stack([groups[i].covs for i in idx])  # (B, size, n, n)
-            if size == 1:
-                means[idx], covs[idx] = M[:, 0], C[:, 0]
-                continue
-            extra = {}
-            if self.method == "mbci":
-                p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
-                extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
-            backend = self.backend if self.method in CI_FAMILY else None
-            try:
-                r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
-            except (FusionInputError, FusionSolverError) as exc:
-                raise self._failed(exc, [groups[i] for i in idx], backend, extra) from None
-            means[idx], covs[idx] = r.mean, r.cov
+        for size, same in by_size.items():
+            step = max(1, int(limits.working_memory // (2.0 * batch_bytes(1, size, n))))
+            for start in range(0, len(same), step):
+                self._fuse_chunk(groups, same[start:start + step], means, covs)
         return means, covs
+
+    def _fuse_chunk(self, groups: list[Group], idx: list[int], means, covs) -> None:
+        """Fuse groups[idx], all of one size, into means[idx] and covs[idx]."""
+        size = len(groups[idx[0]])
+        M = np.stack([groups[i].means for i in idx])  # (B, size, n)
+        C = np.stack([groups[i].covs for i in idx])  # (B, size, n, n)
+        if size == 1:
+            means[idx], covs[idx] = M[:, 0], C[:, 0]
+            return
+        extra = {}
+        if self.method == "mbci":
+            p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
+            extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
+        backend = self.backend if self.method in CI_FAMILY else None
+        try:
+            r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
+        except (FusionInputError, FusionSolverError) as exc:
+            raise self._failed(exc, [groups[i] for i in idx], backend, extra) from None
+        means[idx], covs[idx] = r.mean, r.cov
 
     def _failed(self, exc, groups: list[Group], backend, extra: dict):
         """The error of a fuse_batch of groups, naming this node and the first group that

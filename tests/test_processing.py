@@ -417,3 +417,24 @@ def test_a_failed_group_of_many_sources_is_named_in_a_line_of_reasonable_length(
 
 def _refuse(*args, **kwargs):
     raise fo.FusionInputError("refused for the test")
+
+
+def test_a_step_of_many_groups_is_fused_in_chunks_within_the_memory_limit(monkeypatch):
+    """Fuzz K4: all groups of one size went into one fuse_batch, whose arrays (1,500 groups
+    of 8 estimates of n = 60: 1.3 GB) were refused as a solver's memory_limit though each
+    group is small. Now in chunks of half the limit; the fused tracks are those of one
+    batch, to the bit."""
+    from fusion_opt.limits import batch_bytes
+
+    rng = np.random.default_rng(3)
+    n, m, K = 3, 40, 3
+    truth = rng.uniform(0, 1e3, size=(m, n))
+    reports = {k: fo.Estimates(truth + 1e-3 * rng.normal(size=truth.shape),
+                               np.tile(np.diag([1.0, 2.0, 3.0]) * (k + 1), (m, 1, 1)), None, 0.0)
+               for k in range(K)}
+    whole = fo.ProcessingNode(list(range(K)), method="bci", threshold=1.0).step(reports)
+    monkeypatch.setattr(fo.limits, "working_memory", 7.5 * batch_bytes(1, K, n))  # 3 a chunk
+    chunked = fo.ProcessingNode(list(range(K)), method="bci", threshold=1.0).step(reports)
+    assert len(whole) == m
+    np.testing.assert_array_equal(chunked.means, whole.means)
+    np.testing.assert_array_equal(chunked.covs, whole.covs)
