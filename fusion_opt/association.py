@@ -222,18 +222,26 @@ def _candidates(points: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def _pairs_fit(tree, r: float, p: float) -> None:
-    """Refuses (before they are made) candidate pairs whose arrays (a pair's indices,
-    difference, distance and masks: about 5 + d doubles) would pass
+    """Refuses (before they are made) candidate pairs whose arrays would pass
     fusion_opt.limits.array_memory: every estimate within one threshold of every other
-    makes M^2 / 2 of them (4 sources of 3,000 took 5.7 GB). Counted by the tree only when
-    all M^2 / 2 pairs would not fit, so a usual step pays nothing for it."""
+    makes M^2 / 2 of them (4 sources of 3,000 took 5.7 GB). A pair is counted at 8 + 2 d
+    doubles, at most 1.25 times the peak of `_nearest` (its indices, the two points it
+    takes, their difference, distance, masks and sort orders; tracemalloc, M = 1,200, 2 to
+    1,200 sources: 55-78 bytes a pair at d = 1, 64-86 at d = 2, 96-102 at 4, 160 at 8,
+    where 5 + d doubles were counted, too few: fuzz K5). Counted by the tree only when all
+    M^2 / 2 pairs would not fit, so a usual step pays nothing for it."""
     M, d = tree.data.shape
-    per_pair = 8.0 * (5 + d)
+    per_pair = pair_bytes(d)
     if per_pair * M * (M - 1) / 2 <= limits.array_memory:
         return
     pairs = (int(tree.count_neighbors(tree, r, p=p)) - M) / 2  # i != j, each once
     fits(f"reports: {M} estimates with {pairs:.0f} pairs within the threshold",
          per_pair * pairs)
+
+
+def pair_bytes(d: int) -> float:
+    """The bytes a candidate pair of points in d dimensions is counted at (`_pairs_fit`)."""
+    return 8.0 * (8 + 2 * d)
 
 
 def _distance(diff: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:

@@ -283,3 +283,27 @@ def test_nearest_with_more_close_pairs_than_memory_is_refused_before_making_them
                                                   r"within the threshold.*array_memory"):
         fo.associate(reports(1e-3), 1.0)
     assert len(fo.associate(reports(1e6), 1.0)) == 800  # 800^2 / 2 pairs would not fit
+
+
+@pytest.mark.parametrize("d", [1, 2, 4, 8])
+@pytest.mark.parametrize("sources", [2, 12, 1200])
+def test_the_memory_counted_for_close_pairs_covers_what_nearest_allocates(d, sources):
+    """Fuzz K5: the pairs' arrays were counted at 5 + d doubles a pair, up to 40% below what
+    `_nearest` allocates at its peak (tracemalloc, which sees numpy's arrays), so that a
+    step past the limit could pass the check. The count now covers the peak, within 25%."""
+    import tracemalloc
+
+    from fusion_opt.association import _nearest, pair_bytes
+
+    rng = np.random.default_rng(d)
+    M = 1200
+    points, owner = 1e-3 * rng.normal(size=(M, d)), np.arange(M) % sources
+    _nearest(points, owner, 1.0)  # every pair within the threshold
+    tracemalloc.start()
+    try:
+        _nearest(points, owner, 1.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    counted = pair_bytes(d) * M * (M - 1) / 2
+    assert 1.0 <= counted / peak <= 1.5, counted / peak
