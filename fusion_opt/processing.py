@@ -103,26 +103,26 @@ class ProcessingNode:
     def step(self, reports: Mapping[Hashable, Estimates], time: float | None = None
              ) -> Estimates:
         """Fused estimates of this step from reports {source: Estimates} (module docstring)."""
-        reports = self._check_reports(reports)
+        reports, n = self._check_reports(reports)
         time = self._step_time(reports, time)
         groups = [g for g in associate(reports, self.threshold, self.association, self.dims)
                   if len(g) >= self.min_sources]
-        means, covs = self._fuse(groups)
+        means, covs = self._fuse(groups, n)
         ids = self._ids(groups, means)
         order = np.argsort(ids, kind="stable")
         fused = Estimates(means[order], covs[order], ids[order], time, self.name)
         self.groups = {int(ids[i]): groups[i] for i in order}
         self._remember(fused)
         self._time = self._time if time is None else time
+        self._n = n  # only a step that succeeds sets it (fuzz K9)
         return fused
 
-    def _fuse(self, groups: list[Group]) -> tuple[np.ndarray, np.ndarray]:
+    def _fuse(self, groups: list[Group], n: int) -> tuple[np.ndarray, np.ndarray]:
         """Fused means (G, n) and covs (G, n, n): one fuse_batch call per group size, in
         chunks whose arrays take at most half of limits.working_memory (fuzz K4: 1,500
         groups of 8 estimates of n = 60 made one batch of 1.3 GB, refused as a solver's
         memory_limit; fuse_batch gives each problem what fuse gives it, so chunks change
         no number)."""
-        n = self._n
         means, covs = np.empty((len(groups), n)), np.empty((len(groups), n, n))
         by_size = defaultdict(list)
         for i, g in enumerate(groups):
@@ -303,9 +303,9 @@ class ProcessingNode:
             raise self._err(f"memory must be an integer >= 1 (steps), got {memory!r}")
         return int(memory)
 
-    def _check_reports(self, reports) -> dict[Hashable, Estimates]:
-        """The reports in the order of `sources`; unknown sources, non-Estimates and
-        another state dimension refused by name. Sets the node's n at the first report."""
+    def _check_reports(self, reports) -> tuple[dict[Hashable, Estimates], int]:
+        """The reports in the order of `sources`, and their state dimension n; unknown
+        sources, non-Estimates and another n than earlier steps' refused by name."""
         if not isinstance(reports, Mapping):
             raise self._err(f"reports must be a mapping source -> Estimates, got "
                             f"{type(reports).__name__}")
@@ -327,8 +327,7 @@ class ProcessingNode:
         if n is None:
             raise self._err("no reports at its first step: the state dimension is unknown")
         check_dims(self.dims, n)
-        self._n = n
-        return ordered
+        return ordered, n
 
     def _step_time(self, reports: dict[Hashable, Estimates], time) -> float | None:
         """time, or the reports' common time; not before the last step's (checked before

@@ -438,3 +438,17 @@ def test_a_step_of_many_groups_is_fused_in_chunks_within_the_memory_limit(monkey
     assert len(whole) == m
     np.testing.assert_array_equal(chunked.means, whole.means)
     np.testing.assert_array_equal(chunked.covs, whole.covs)
+
+
+def test_a_refused_first_step_does_not_fix_the_state_dimension():
+    """Fuzz K9: a first step refused at the fusion (nodes 1e600 apart) left the node's n set
+    to that step's, and a next step of another dimension was refused against an n no step
+    had succeeded with."""
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0)
+    E = fo.Estimates
+    with pytest.raises(fo.FusionInputError, match="beyond float64"):
+        node.step({"a": E(np.zeros((1, 2)), 1e-300 * np.eye(2)[None]),
+                   "b": E(np.zeros((1, 2)), 1e300 * np.eye(2)[None])})
+    assert node.step({"a": E(np.zeros((1, 3)), np.eye(3)[None])}).n == 3
+    with pytest.raises(fo.FusionInputError, match="n = 3 expected"):
+        node.step({"a": E(np.zeros((1, 2)), np.eye(2)[None])})
