@@ -435,17 +435,20 @@ class StoneSoupTracker:
             raise FusionInputError("the tracker's tracks must be Stone Soup Tracks, got "
                                    f"{sorted({type(t).__name__ for t in tracks})}")
         states = {t: s for t in tracks if (s := _state_at(t, time)) is not None}
-        new = {t: real_array(getattr(states[t], "mean", None), f"the mean of track {t.id!r}")
-               for t in states if t.id not in self.track_ids}  # numbered in their order
-        for t in sorted(new, key=lambda t: tuple(new[t].ravel())):
-            self.track_ids.int_id(t.id)
-        alive = sorted(states, key=lambda t: self.track_ids.int_id(t.id))
-        if not alive:
+        if not states:
             return Estimates.empty(self.ndim, seconds, self.node)
-        means, covs, _, _ = _gaussian_summary([states[t] for t in alive], "tracks")
+        # every state's Gaussian summary checked (with its message) before any is used
+        means, covs, _, _ = _gaussian_summary(list(states.values()), "tracks")
         if means.shape[1] != self.ndim:
             raise FusionInputError(f"the tracker's states have dimension {means.shape[1]}, "
                                    f"not ndim = {self.ndim}")
+        row = dict(zip(states, range(len(states)), strict=True))
+        new = [t for t in states if t.id not in self.track_ids]  # numbered by their means
+        for t in sorted(new, key=lambda t: tuple(means[row[t]])):
+            self.track_ids.int_id(t.id)
+        alive = sorted(states, key=lambda t: self.track_ids.int_id(t.id))
+        order = [row[t] for t in alive]
+        means, covs = means[order], covs[order]
         ids = [self.track_ids.int_id(t.id) for t in alive]
         try:
             return Estimates(means, covs, ids, seconds, self.node)

@@ -199,7 +199,8 @@ def test_the_tracker_wrapper_refuses_odd_tracks_by_name():
         fs.StoneSoupTracker([(T0, [track])], 2).step()
     tracks = [Track([GaussianState(np.array([["a"], ["2"]], dtype=object), eye, timestamp=T0)]),
               Track([GaussianState([1.0, 2.0], eye, timestamp=T0)])]
-    with pytest.raises(fo.FusionInputError, match=r"the mean of track .* real numbers"):
+    with pytest.raises(fo.FusionInputError, match=r"tracks\[0\]'s mean must be an array of "
+                                                  r"real numbers"):
         fs.StoneSoupTracker([(T0, tracks)], 2).step()
 
 
@@ -550,3 +551,13 @@ def test_optimal_chernoff_updater_takes_a_measurement_of_another_time():
     update = up.update(SingleHypothesis(pred, det))
     assert update.timestamp == later and update.metadata["omega"] == 1.0  # I beats 2 I
     np.testing.assert_array_equal(update.state_vector.ravel(), [1.5, 2.5])
+
+
+def test_a_tracker_whose_track_has_no_gaussian_state_is_refused_as_such():
+    """Fuzz K7: a Track of plain States (no covariance) was refused as "the mean of track
+    't5' must be an array of real numbers, got objects", read before the Gaussian summary
+    was checked; now the summary's own message, as fuse_states gives it."""
+    track = Track([State(np.array([[1.0], [2.0]]), timestamp=T0)], id="t5")
+    with pytest.raises(fo.FusionInputError, match=r"tracks\[0\] \(State\) has no Gaussian "
+                                                  r"summary \(mean and covar\)"):
+        fs.StoneSoupTracker([(T0, [track])], 2).step()
