@@ -80,6 +80,7 @@ class ProcessingNode:
                  growth=None, min_sources=1, memory=1, name=None):
         self.name = _check_name(name)
         self.sources = self._check_sources(sources)
+        self._known = frozenset(self.sources)  # membership in O(1): 16,000 sources (fuzz K12)
         self.method = self._check_method(method)
         self.criterion = self._check_choice("criterion", criterion, CRITERIA)
         self.backend = self._check_backend(backend)
@@ -227,7 +228,7 @@ class ProcessingNode:
         bad = [s for s in sources if not hashable(s)]
         if bad:
             raise self._err(f"sources must be hashable names, got {bad!r}")
-        repeated = sorted({repr(s) for s in sources if sources.count(s) > 1})
+        repeated = sorted(repr(s) for s, k in Counter(sources).items() if k > 1)
         if repeated:
             raise self._err(f"sources are listed more than once: {', '.join(repeated)}")
         return sources
@@ -268,7 +269,7 @@ class ProcessingNode:
             raise self._err(f"method 'mbci' needs p_detect, a mapping source -> detection "
                             f"probability, got {p_detect!r}")
         missing = [s for s in self.sources if s not in p_detect]
-        unknown = [s for s in p_detect if s not in self.sources]
+        unknown = [s for s in p_detect if s not in self._known]
         if missing or unknown:
             raise self._err(f"p_detect must name exactly the sources: missing {missing}, "
                             f"unknown {unknown}")
@@ -309,7 +310,7 @@ class ProcessingNode:
         if not isinstance(reports, Mapping):
             raise self._err(f"reports must be a mapping source -> Estimates, got "
                             f"{type(reports).__name__}")
-        unknown = [s for s in reports if s not in self.sources]
+        unknown = [s for s in reports if s not in self._known]
         if unknown:
             raise self._err(f"reports from unknown sources {unknown}; its sources are "
                             f"{list(self.sources)}")
