@@ -214,3 +214,16 @@ def test_particle_counts_beyond_memory_are_refused_before_allocating():
     _, model, m0, P0 = table1()
     with pytest.raises(FusionInputError, match=r"n_particles = 1000000000000: about .* GiB"):
         rbpf.RBPF(model, m0, P0, rng=np.random.default_rng(0), n_particles=10**12)
+
+
+def test_weights_that_overflow_are_refused_in_the_users_terms():
+    """Fuzz K13: a prior of 1.7e308 I overflowed the prediction, the log-weights became NaN
+    and the step was refused as "logw must be finite ...", a name the caller never gave."""
+    from trackers.models import turn_model
+
+    pf = rbpf.RBPF(turn_model(0.0, 0.1, 1.0, 1.0), np.zeros(4), 1.7e308 * np.eye(4),
+                   rng=np.random.default_rng(0))
+    with pytest.raises(FusionInputError, match=r"^the particles' weights are not finite after "
+                                               r"this step: float64 cannot represent it"):
+        pf.step([[1.0, 2.0]])
+    assert pf.steps == 0

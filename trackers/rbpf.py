@@ -137,6 +137,11 @@ def filter_step(state: RBPFState, scan: np.ndarray, params: RBPFParams, rng):
             raise FusionInputError(
                 f"scan[{j}] = {y.tolist()} has likelihood 0 under every particle and "
                 "clutter_prior = 0 rules out clutter: no hypothesis explains it")
+    if np.isnan(logw).any() or np.isposinf(logw).any():  # fuzz K13: "logw must be finite"
+        raise FusionInputError(
+            "the particles' weights are not finite after this step: float64 cannot represent "
+            "it (a measurement far beyond the model's scale, or a model and prior at "
+            "float64's limits); the filter's state is the one before it")
     end = end_of_step(logw, params.threshold, rng)
     mean, cov = mixture_moments(end.weights, m, P)
     if end.ancestors is not None:
