@@ -271,9 +271,12 @@ def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
         with np.errstate(over="ignore"):
             d = cdist(ps, cs)
         return d, d < threshold / s
-    with np.errstate(over="ignore"):  # a difference past float64 is inf: never near
-        diff = p[:, None, :] - c[None]
-    return _distance(diff, threshold)
+    d, near = np.empty((len(p), len(c))), np.empty((len(p), len(c)), dtype=bool)
+    for i in range(len(p)):  # a row at a time: the (m, K, d) differences at once made every
+        with np.errstate(over="ignore"):  # step count d doubles a cell more (fuzz K10)
+            diff = p[i] - c  # a difference past float64 is inf: never near
+        d[i], near[i] = _distance(diff, threshold)
+    return d, near
 
 
 @jit
@@ -374,12 +377,12 @@ def _joined(pairs, owner, points, n_sources):
 def _assignment(points: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
     """Source by source, gated optimal assignment to the groups' centroids; refused before
     it starts when a source's cost matrix against up to all M estimates' groups, with its
-    distances, gate and the fallback's differences (about 4 + d doubles a cell), would pass
+    distances, gate and the solver's copy (about 4 doubles a cell), would pass
     fusion_opt.limits.array_memory (16 sources of 4,000 took 4.2 GB)."""
     M, d = points.shape
     most = int(np.bincount(owner).max(initial=0))
     fits(f"reports: {M} estimates, up to {most} from one source, assigned to up to {M} groups",
-         8.0 * most * M * (4 + d))
+         8.0 * most * M * 4)
     groups: list[list[int]] = []
     centroids: list[np.ndarray] = []
     s = _unit(threshold)

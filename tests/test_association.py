@@ -307,3 +307,24 @@ def test_the_memory_counted_for_close_pairs_covers_what_nearest_allocates(d, sou
         tracemalloc.stop()
     counted = pair_bytes(d) * M * (M - 1) / 2
     assert 1.0 <= counted / peak <= 1.5, counted / peak
+
+
+def test_assignment_counts_the_cells_of_the_path_that_runs(monkeypatch):
+    """Fuzz K10: "assignment" counted d doubles a cell more for the differences of its
+    overflow fallback (coordinates near 1e308), which now runs a row at a time, so that at
+    n = 100 it refused steps that need a 26th of that; the fallback still groups alike."""
+    from fusion_opt.limits import limits
+
+    rng = np.random.default_rng(4)
+    m, d = 50, 100
+    T = rng.uniform(0, 1e3, (m, d))
+    reports = {s: fo.Estimates(T + 1e-3 * rng.normal(size=T.shape),
+                               np.broadcast_to(np.eye(d), (m, d, d))) for s in "ab"}
+    monkeypatch.setattr(limits, "array_memory", 8.0 * m * 2 * m * 5)  # 5 doubles a cell
+    assert len(fo.associate(reports, 1.0, "assignment")) == m
+    # coordinates near 1.7e308 in units of a threshold below 1 overflow: the fallback runs
+    # (its differences, 0 or at least 1e300 here, are exact)
+    big = 1.7e308 - 1e300 * np.arange(m)[:, None] * np.ones((m, 2))
+    groups = fo.associate({s: fo.Estimates(big, np.broadcast_to(np.eye(2), (m, 2, 2)))
+                           for s in "ab"}, 0.25, "assignment")
+    assert sorted(g.pairs for g in groups) == sorted((("a", i), ("b", i)) for i in range(m))
