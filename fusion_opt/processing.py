@@ -172,12 +172,13 @@ class ProcessingNode:
 
     def _ids(self, groups: list[Group], means: np.ndarray) -> np.ndarray:
         """Fused track ids (G,): inherited by shared (source, track id) pairs, else new."""
-        owner = {}  # (source, track id) -> the most recent fused track holding it
-        for f, track in sorted(self._tracks.items(), key=lambda item: item[1].step):
-            owner.update(dict.fromkeys(track.pairs, f))
+        holders = defaultdict(list)  # (source, track id) -> every recent fused track holding
+        for f, track in self._tracks.items():  # it, not only the latest (fuzz K8: a target
+            for p in track.pairs:  # misjoined for a step lost its id where the docstring
+                holders[p].append(f)  # says it keeps it)
         group, fid, shared = [], [], []  # one entry per (group, recent track) sharing pairs
         for i, g in enumerate(groups):
-            for f, count in Counter(owner[p] for p in g.pairs if p in owner).items():
+            for f, count in Counter(f for p in g.pairs for f in holders.get(p, ())).items():
                 group.append(i)
                 fid.append(f)
                 shared.append(count)

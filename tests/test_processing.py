@@ -452,3 +452,21 @@ def test_a_refused_first_step_does_not_fix_the_state_dimension():
     assert node.step({"a": E(np.zeros((1, 3)), np.eye(3)[None])}).n == 3
     with pytest.raises(fo.FusionInputError, match="n = 3 expected"):
         node.step({"a": E(np.zeros((1, 2)), np.eye(2)[None])})
+
+
+def test_a_pair_counts_for_every_recent_fused_track_that_holds_it():
+    """Fuzz K8: a (source, track id) pair counted only for the most recent fused track
+    holding it, so target X, whose source track a1 joined target Y's group for one step,
+    got a new id at the next step although its own fused track 0 (reported two steps
+    before, memory 3) holds a1 and is free: the docstring's rule gives it 0 back."""
+    def est(ms):
+        ms = np.atleast_2d(np.array(ms, float))
+        return fo.Estimates(ms, np.tile(np.eye(2), (len(ms), 1, 1)), [1])
+
+    node = fo.ProcessingNode(["a", "b", "c"], method="bci", threshold=1.0, memory=3)
+    y = {"b": est([10, 0]), "c": est([10.2, 0])}
+    assert node.step({"a": est([0, 0]), **y}).ids.tolist() == [0, 1]
+    assert node.step({"a": est([10.1, 0]), **y}).ids.tolist() == [1]  # a1 joins Y's group
+    out = node.step({"a": est([0, 0]), **y})
+    assert out.ids.tolist() == [0, 1]
+    assert node.groups[0].pairs == (("a", 1),)
