@@ -19,7 +19,13 @@ fixed at construction) and a cycle is refused. Each step:
 - a tracker steps only if `scans` holds its scan. A missing scan means nothing arrived
   from that node (a silent node or a lost link): the tracker does not step and reports
   nothing. A scan with no detection is not missing: pass the empty scan, the tracker
-  steps (predicts) and reports its tracks;
+  steps (predicts) and reports its tracks. The package's trackers predict one model dt
+  per step, so one left out is a step behind from then on: RBMCDA stamps its clock, one
+  dt behind the others', and a node fusing it refuses the reports' different times at
+  every later step; KalmanFilter and RBPF stamp no time and their estimates are fused
+  one dt old until measurements pull them back (fuzz K14). To model a lost link with
+  them, step the tracker on its scan (or the empty scan) and leave its report out:
+  `lost` names such trackers;
 - a processing node steps with the reports of those of its sources that reported; if
   none did, it does not step and reports nothing either (its fused ids carry over to its
   next step);
@@ -48,6 +54,7 @@ from typing import Any, Protocol
 from .estimates import Estimates, check_forward, check_time
 from .processing import ProcessingNode
 from .results import FusionInputError, FusionSolverError, in_context
+from .validation import hashable
 
 
 class Tracker(Protocol):
@@ -67,9 +74,10 @@ class Network:
         self.processing = _check_processing(processing, self.trackers)
         self.order = _topological_order(self.processing)
 
-    def step(self, scans: Mapping[Hashable, Any], time: float | None = None
-             ) -> dict[Hashable, Estimates]:
-        """The Estimates of every node that reported at this step (module docstring)."""
+    def step(self, scans: Mapping[Hashable, Any], time: float | None = None, *,
+             lost: Iterable[Hashable] = ()) -> dict[Hashable, Estimates]:
+        """The Estimates of every node that reported at this step (module docstring);
+        the trackers named in `lost` step on their scans but their reports do not arrive."""
         if not isinstance(scans, Mapping):
             raise FusionInputError(f"scans must be a mapping tracker name -> scan, got "
                                    f"{type(scans).__name__}")
@@ -77,12 +85,15 @@ class Network:
         if unknown:
             raise FusionInputError(f"scans for unknown trackers {unknown}; the trackers are "
                                    f"{list(self.trackers)}")
+        lost = self._check_lost(lost, scans)
         time = check_time(time)  # before any node steps
         out = {}
         try:
             for name, tracker in self.trackers.items():
                 if name in scans:
-                    out[name] = _tracker_step(name, tracker, scans[name])
+                    estimates = _tracker_step(name, tracker, scans[name])
+                    if name not in lost:
+                        out[name] = estimates
             for name in self.order:
                 node = self.processing[name]
                 reports = {s: out[s] for s in node.sources if s in out}
@@ -92,6 +103,19 @@ class Network:
             stepped = f" (nodes {list(out)} had stepped)" if out else ""
             raise in_context(exc, "", stepped) from exc
         return out
+
+    def _check_lost(self, lost, scans) -> frozenset:
+        """lost: names of trackers with a scan at this step (a lost link's tracker steps)."""
+        if isinstance(lost, str | bytes | Mapping) or not isinstance(lost, Iterable):
+            raise FusionInputError(f"lost must be a collection of tracker names, got {lost!r}")
+        lost = list(lost)
+        bad = [name for name in lost if not hashable(name) or name not in scans]
+        if bad:
+            raise FusionInputError(
+                f"lost names {bad}, not trackers with a scan at this step: a lost link's "
+                "tracker steps on its scan (the empty scan if it detected nothing) and its "
+                "report does not arrive")
+        return frozenset(lost)
 
     def run(self, scan_series: Iterable[Mapping[Hashable, Any]],
             times: Sequence[float] | None = None) -> dict[Hashable, list[Estimates]]:

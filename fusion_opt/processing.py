@@ -10,12 +10,14 @@ Each step:
    per source;
 2. drop the groups of fewer than `min_sources` sources, pass a group of one on as it is,
    and fuse every group of two or more with `method` (any rule of `fo.fuse` that needs no
-   cross-covariance); all the groups of one size go to ONE `fo.fuse_batch` call. MBCI
+   cross-covariance); all the groups of one size go to one `fo.fuse_batch` call (in
+   chunks of at most half of `limits.working_memory`). MBCI
    scales each member's information by the product over the group's own sources,
        s_i = p_i + (1 - p_i) chi prod_{j in group, j != i} (p_j + (1 - p_j) chi);
 3. give each fused track an id: a group inherits the id of a recent fused track (one
    reported at one of the last `memory` steps; memory = 1: the previous step's) with
-   which it shares the most (source, source track id) pairs, ties going to the more
+   which it shares the most (source, source track id) pairs (a pair counts for every
+   recent fused track holding it), ties going to the more
    recent, then to the nearer one over `dims`; greedily, largest overlap first, so an id
    goes to at most one group; a group sharing no pair with a free id gets a new id, never
    reused (until `reset`). A fused track remembers the pairs and the mean of the last

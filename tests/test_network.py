@@ -278,3 +278,37 @@ def test_a_fusion_that_fails_names_the_node_the_group_and_what_had_stepped():
     assert re.search(r"processing node 'f': ProcessingNode: fusing source 'a' track 0 "
                      r"\(node 0\) with source 'b' track 0 \(node 1\): n = 200.*"
                      r"nodes \['a', 'b'\] had stepped\)$", str(err.value))
+
+
+def test_a_lost_link_keeps_a_clocked_tracker_in_time_where_a_missing_scan_does_not():
+    """Fuzz K14: a scan left out puts RBMCDA, which stamps its clock (k + 1) dt, one step
+    behind for good, and its node refuses every later step; `lost` steps the tracker on its
+    scan and drops the report, so the network goes on."""
+    from trackers.models import turn_model
+    from trackers.rbmcda import RBMCDA
+
+    def network():
+        def make(seed):
+            return RBMCDA(turn_model(0.0, 0.1, 1.0, 1.0), np.zeros(4),
+                          np.diag([100.0, 100, 10, 10]), rng=np.random.default_rng(seed),
+                          dt=1.0, birth_prob=0.5, clutter_density=1e-6)
+        return fo.Network({"a": make(0), "b": make(1)},
+                          {"f": fo.ProcessingNode(["a", "b"], method="bci", threshold=5.0)})
+
+    def scans(k):
+        return {"a": [[k * 1.0, 0.0]], "b": [[k * 1.0 + 0.1, 0.0]]}
+
+    left_out, lost = network(), network()
+    for k in range(5):
+        out = lost.step(scans(k), lost=["b"] if k == 2 else ())
+        assert out["f"].time == k + 1.0
+        assert ("b" in out) == (k != 2)
+        if k == 2:
+            left_out.step({"a": scans(k)["a"]})
+        elif k < 3:
+            left_out.step(scans(k))
+    with pytest.raises(fo.FusionInputError, match=r"reports carry different times"):
+        left_out.step(scans(3))
+    for bad in (["c"], "b", [["b"]]):
+        with pytest.raises(fo.FusionInputError, match="lost"):
+            lost.step({"a": []}, lost=bad)
