@@ -357,3 +357,20 @@ def test_the_memory_check_refuses_exactly_the_sizes_over_one_limit(backend, monk
     if backend == "clarabel":
         monkeypatch.setattr(fo.limits, "conic_memory", np.nextafter(conic_bytes(n, N), 0))
         assert core.over_memory(req, n, N, B)[2] == "conic_memory"
+
+
+def test_a_list_nested_past_the_recursion_limit_is_refused_by_name():
+    """Fuzz K16: the check for booleans inside nested lists recursed once a level, and a
+    list nested 3,000 deep raised RecursionError from every array argument."""
+    x = 1.0
+    for _ in range(3000):
+        x = [x]
+    with pytest.raises(fo.FusionInputError, match="^means must be an array of real numbers"):
+        fo.bci(x, x)
+    with pytest.raises(fo.FusionInputError, match="ids must be"):
+        fo.Estimates(np.zeros((1, 1)), np.eye(1)[None], x)
+    deep_bool = True
+    for _ in range(3000):
+        deep_bool = [deep_bool]
+    with pytest.raises(fo.FusionInputError, match="boolean"):
+        fo.bci([[0.0, deep_bool]], np.eye(2)[None])

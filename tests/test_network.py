@@ -312,3 +312,20 @@ def test_a_lost_link_keeps_a_clocked_tracker_in_time_where_a_missing_scan_does_n
     for bad in (["c"], "b", [["b"]]):
         with pytest.raises(fo.FusionInputError, match="lost"):
             lost.step({"a": []}, lost=bad)
+
+
+def test_a_chain_of_1200_processing_nodes_is_ordered_and_steps():
+    """Fuzz K15: the topological order was a recursive search, and a chain deeper than
+    Python's recursion limit (about 1,000 nodes) raised RecursionError; cycles are still
+    refused by name (test above)."""
+    class Replay:
+        def step(self, scan):
+            return fo.Estimates(*scan)
+
+    proc = {"n0": fo.ProcessingNode(["t"], method="bci", threshold=1.0)}
+    for i in range(1, 1200):
+        proc[f"n{i}"] = fo.ProcessingNode([f"n{i - 1}"], method="bci", threshold=1.0)
+    net = fo.Network({"t": Replay()}, dict(reversed(list(proc.items()))))
+    assert net.order == [f"n{i}" for i in range(1200)]
+    out = net.step({"t": (np.ones((1, 2)), np.eye(2)[None])})
+    np.testing.assert_array_equal(out["n1199"].means, [[1.0, 1.0]])
