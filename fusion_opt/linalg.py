@@ -268,8 +268,13 @@ def cholesky(A, L) -> bool:
 
 @jit
 def lower_inverse(L, X):
-    """X = L^-1 for a lower-triangular L with a nonzero diagonal (X may not be L)."""
+    """X = L^-1 for a lower-triangular L with a nonzero diagonal (X may not be L). Above
+    order 8 by rows of X (each entry's sum in the same order, so the same bits: at 256 the
+    columns' stride made it 4.5 against 1.0 ms; at 6, 0.13 against 0.17 us the other way)."""
     n = L.shape[0]
+    if n > 8:
+        _lower_inverse_rows(L, X)
+        return
     for j in range(n):
         for i in range(j):
             X[i, j] = 0.0
@@ -279,6 +284,23 @@ def lower_inverse(L, X):
             for p in range(j, i):
                 t -= L[i, p] * X[p, j]
             X[i, j] = t / L[i, i]
+
+
+@jit
+def _lower_inverse_rows(L, X):
+    """`lower_inverse` row by row: entry (i, j) is 0 - sum_{p = j}^{i - 1} L[i, p] X[p, j]
+    in the order of p, then divided by L[i, i], as by columns."""
+    n = L.shape[0]
+    for i in range(n):
+        for j in range(n):
+            X[i, j] = 0.0
+        for p in range(i):
+            a = L[i, p]
+            for j in range(p + 1):
+                X[i, j] -= a * X[p, j]
+        for j in range(i):
+            X[i, j] /= L[i, i]
+        X[i, i] = 1.0 / L[i, i]
 
 
 @jit

@@ -661,25 +661,25 @@ def _blue_mean(F, G, P, means, shares, u, mean):
 @jit
 def _joint_factor(C, R) -> bool:
     """R = the Cholesky factor of C (m, m), and C = R^-1 (for the condition estimate);
-    False if C is not positive definite to rounding. Above _LAPACK_ABOVE rows by LAPACK
-    (numba's np.linalg), whose blocked algorithms are then the faster (both steps, warm:
-    64 against 89 us at m = 64, 550 against 740 at 128; 45 against 24 at 48), so that
-    known-cross at N = 256 nodes of n = 4 takes about what its numpy form took."""
+    False if C is not positive definite to rounding. Above _LAPACK_ABOVE rows the factor
+    by LAPACK (numba's np.linalg), whose blocked algorithm is then the faster (22 against
+    123 ms at m = 1024), so that known-cross at N = 256 nodes of n = 4 takes about what
+    its numpy form took; the inverse by `lower_inverse`'s rows (60 ms there, LAPACK's
+    general inverse 70, and 4 s less to compile)."""
     m = C.shape[0]
     if m <= _LAPACK_ABOVE:
         if not cholesky(C, R):
             return False
-        lower_inverse(R, C)
-        return True
-    try:
-        L = np.linalg.cholesky(C)
-    except Exception:  # noqa: BLE001 (numba raises LinAlgError, and catches only this)
-        return False
-    for a in range(m):
-        if not (L[a, a] > 0.0 and np.isfinite(L[a, a])):
+    else:
+        try:
+            L = np.linalg.cholesky(C)
+        except Exception:  # noqa: BLE001 (numba raises LinAlgError, and catches only this)
             return False
-    R[:, :] = L
-    C[:, :] = np.linalg.inv(L)
+        for a in range(m):
+            if not (L[a, a] > 0.0 and np.isfinite(L[a, a])):
+                return False
+        R[:, :] = L
+    lower_inverse(R, C)
     return True
 
 

@@ -135,3 +135,24 @@ def test_lower_solve_is_forward_substitution_summed_in_the_order_of_p(n, k):
     eye = np.empty((n, n))
     linalg.lower_solve(L, L, eye)
     np.testing.assert_array_equal(eye, np.eye(n))
+
+
+@pytest.mark.parametrize("n", [1, 3, 8, 9, 40])
+def test_lower_inverse_by_rows_gives_the_bits_of_the_column_loop(n):
+    """Above order 8 lower_inverse runs by rows of X (the columns' stride made it 4.5
+    times slower at 256); every entry's sum in the same order, so the same bits as the
+    plain column loop, and the inverse to rounding."""
+    rng = np.random.default_rng(n)
+    L = np.tril(rng.standard_normal((n, n))) + 3.0 * np.eye(n)
+    X = np.empty((n, n))
+    linalg.lower_inverse(L, X)
+    loop = np.zeros((n, n))
+    for j in range(n):
+        loop[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            t = 0.0
+            for p in range(j, i):
+                t -= L[i, p] * loop[p, j]
+            loop[i, j] = t / L[i, i]
+    np.testing.assert_array_equal(X, loop)
+    assert np.abs(X @ L - np.eye(n)).max() <= 1e-12
