@@ -301,8 +301,8 @@ def compile_part(part: str) -> float:
     checks, factors and the weight solvers; "assemble": the fused estimates and their
     certificate; "conic": the scaled data a conic backend receives and the certificates of
     its polish; "rules": the fixed-weight rules' (naive, fast-ci, ifci) and
-    `optimality_gap`'s kernels; "cross": known-cross's (9 s alone, cold, 4.5 of them for its
-    LAPACK calls); "pairs": ici's and ei's; "fuse": `fuse_exact`,
+    `optimality_gap`'s kernels; "cross": known-cross's (7 s alone, cold, with numba's LAPACK
+    Cholesky); "pairs": ici's and ei's; "fuse": `fuse_exact`,
     the whole exact path, from the kernels of "solve" and "assemble"; "network": the
     checks of an Estimates, MBCI's detection scales and the association of estimates. On
     a cold cache, processes compiling a stage's parts at once (KERNEL_STAGES) shorten the
