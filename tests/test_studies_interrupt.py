@@ -102,6 +102,7 @@ def _resumes(config, out, uninterrupted) -> None:
     assert info["run_compute_time_s"] > 0
 
 
+@pytest.mark.slow  # 4.5 s: the default run resumes after Ctrl-C (below) within its budget
 def test_killed_study_resumes_to_the_uninterrupted_table(config, uninterrupted, tmp_path):
     out = _part_way(config, tmp_path, "1", signal.SIGKILL)[0]
     assert 2 <= _stored(out / "table1" / "runs.sqlite") < RUNS, "must land part-way"
