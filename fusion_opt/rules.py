@@ -572,54 +572,68 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
     X = np.empty((2, n, n))
     K, u = np.empty((N, n, n)), np.empty((2, n))
     for b in range(B):
+        where[0] = b
         code = _check_cross(covs[b], cross[b], k[b], where)
+        if code == OK:
+            code, condition[b] = _joint(F[b], cross[b], k[b], X, C, R)
         if code != OK:
-            where[0] = b
             return code
-        _whitened_joint(F[b], cross[b], k[b], X, C)
-        norm2 = 0.0
-        for a in range(m):
-            for c in range(m):
-                norm2 += C[a, c] * C[a, c]
-        if not np.isfinite(norm2) or not _joint_factor(C, R):
-            where[0] = b
-            return CROSS_NOT_PD
-        inverse2 = 0.0
-        for a in range(m):
-            for c in range(a + 1):
-                inverse2 += C[a, c] * C[a, c]
-        condition[b] = np.sqrt(norm2) * inverse2
-        if not condition[b] <= MAX_CONDITION:
-            where[0] = b
-            return CROSS_SINGULAR
-        for i in range(N):
-            for a in range(n):
-                for c in range(n):
-                    Z[i * n + a, c] = F[b, i, a, c]
-        lower_solve(R, Z, G)  # G = R^-1 [F_i], the whitened design
-        for a in range(m):
-            for c in range(n):
-                Zt[c, a] = At[c, a] = G[a, c]
-        householder(At, n, m, Vt, U)
-        upper_inverse(U, Ui)
-        for a in range(n):  # P = U^-1 U^-T
-            for c in range(n):
-                t = 0.0
-                for d in range(max(a, c), n):
-                    t += Ui[a, d] * Ui[c, d]
-                P[a, c] = t
-        _lower_t_solve(R, Zt, G)  # G = R^-T Z
+        _design(F[b], R, Z, G, At, Zt, Vt, U, Ui, P)
         for i in range(N):
             matmul_t(P, G[i * n:(i + 1) * n], X[0])  # P G_i^T
             matmul(X[0], F[b, i], K[i])
             shares[b, i] = np.trace(K[i]) / n
         _blue_mean(F[b], G, P, means[b], shares[b], u, mean[b])
-        where[0] = b
         if not cholesky(P, L) or not np.isfinite(shares[b]).all():
             return NOT_PD
         if not _unscaled(P, L, k[b], trace, mean[b], cov[b], obj, b):
             return OVERFLOW
     return OK
+
+
+@jit
+def _joint(F, cross, k, X, C, R):
+    """(code, condition estimate) of the joint whitened node by node into C (m, m), its
+    Cholesky factor into R and R^-1 into C: CROSS_NOT_PD where it is not positive definite
+    (or not finite), CROSS_SINGULAR where |C|_F |R^-1|_F^2 passes MAX_CONDITION."""
+    m = C.shape[0]
+    _whitened_joint(F, cross, k, X, C)
+    norm2 = 0.0
+    for a in range(m):
+        for c in range(m):
+            norm2 += C[a, c] * C[a, c]
+    if not np.isfinite(norm2) or not _joint_factor(C, R):
+        return CROSS_NOT_PD, np.inf
+    inverse2 = 0.0
+    for a in range(m):
+        for c in range(a + 1):
+            inverse2 += C[a, c] * C[a, c]
+    condition = np.sqrt(norm2) * inverse2
+    return (OK if condition <= MAX_CONDITION else CROSS_SINGULAR), condition
+
+
+@jit
+def _design(F, R, Z, G, At, Zt, Vt, U, Ui, P):
+    """With the joint's factor R: the whitened design R^-1 [F_1; ...; F_N] (m, n), its QR's
+    U, P = U^-1 U^-T, and G = R^-T R^-1 [F_i] (Z, At, Zt, Vt, Ui scratch)."""
+    N, n = F.shape[0], F.shape[1]
+    for i in range(N):
+        for a in range(n):
+            for c in range(n):
+                Z[i * n + a, c] = F[i, a, c]
+    lower_solve(R, Z, G)
+    for a in range(N * n):
+        for c in range(n):
+            Zt[c, a] = At[c, a] = G[a, c]
+    householder(At, n, N * n, Vt, U)
+    upper_inverse(U, Ui)
+    for a in range(n):
+        for c in range(n):
+            t = 0.0
+            for d in range(max(a, c), n):
+                t += Ui[a, d] * Ui[c, d]
+            P[a, c] = t
+    _lower_t_solve(R, Zt, G)
 
 
 @jit
