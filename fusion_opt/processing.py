@@ -131,7 +131,8 @@ class ProcessingNode:
         for i, g in enumerate(groups):
             by_size[len(g)].append(i)
         for size, same in by_size.items():
-            step = max(1, int(limits.working_memory // (2.0 * batch_bytes(1, size, n))))
+            fit = limits.working_memory / (2.0 * batch_bytes(1, size, n))  # inf: no limit
+            step = max(1, int(min(fit, len(same))))
             for start in range(0, len(same), step):
                 self._fuse_chunk(groups, same[start:start + step], means, covs)
         return means, covs

@@ -470,3 +470,13 @@ def test_a_pair_counts_for_every_recent_fused_track_that_holds_it():
     out = node.step({"a": est([0, 0]), **y})
     assert out.ids.tolist() == [0, 1]
     assert node.groups[0].pairs == (("a", 1),)
+
+
+def test_no_memory_limit_fuses_every_group_in_one_batch(monkeypatch):
+    """Fuzz L5: limits.working_memory = inf ("no limit", as its message says) made the
+    chunk size inf // x = NaN and every step raised ValueError."""
+    monkeypatch.setattr(fo.limits, "working_memory", float("inf"))
+    rng = np.random.default_rng(2)
+    reports = {k: fo.Estimates(rng.normal(size=(5, 2)) * 1e-3 + np.arange(5)[:, None] * 10,
+                               np.tile(np.eye(2), (5, 1, 1)), None, 0.0) for k in "ab"}
+    assert len(fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0).step(reports)) == 5
