@@ -304,7 +304,7 @@ def gain_mean(means, K, shares, mean):
         for i in range(N):
             for c in range(n):
                 t += K[i, a, c] * (np.ldexp(means[i, c], -e) - np.ldexp(means[r, c], -e))
-        mean[a] = means[r, a] + np.ldexp(t, e)
+        mean[a] = _shifted(means[r, a], t, e, e)
 
 
 def _numerical_error(method, code, problem: str) -> FusionSolverError:
@@ -637,6 +637,15 @@ def _design(F, R, Z, G, At, Zt, Vt, U, Ui, P):
 
 
 @jit
+def _shifted(m, t, shift, e) -> float:
+    """m + t 2^shift; where t 2^shift alone overflows float64 but the sum does not (m and
+    t of opposite signs near 1.8e308: fuzz L10), the sum in units of 2^e, e the exponent
+    of the largest |mean|. inf only where the result is beyond float64."""
+    x = m + np.ldexp(t, shift)
+    return x if np.isfinite(x) else np.ldexp(np.ldexp(m, -e) + np.ldexp(t, shift - e), e)
+
+
+@jit
 def _blue_mean(F, G, P, means, shares, u, mean):
     """known-cross's mean m_r + P sum_i G_i^T F_i (m_i - m_r) (r the node of the largest
     gain share; G = R^-T Z, so that P G_i^T F_i = K_i) without forming the gains: a gain
@@ -669,7 +678,7 @@ def _blue_mean(F, G, P, means, shares, u, mean):
         t = 0.0
         for c in range(n):
             t += P[a, c] * y[c]
-        mean[a] = means[r, a] + np.ldexp(t, e + eu)
+        mean[a] = _shifted(means[r, a], t, e + eu, e)
 
 
 @jit

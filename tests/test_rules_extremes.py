@@ -222,3 +222,27 @@ def test_known_cross_keeps_the_share_of_a_node_whose_gain_underflows():
     for method, args in (("naive", {}), ("known-cross", {"cross": cross})):
         r = fo.fuse(means, np.array([Pa, Pb]), method, **args)
         assert r.mean[0] == exact, (method, r.mean[0] / exact)
+
+
+def test_a_fused_mean_in_range_is_not_refused_where_its_correction_alone_overflows():
+    """Fuzz L10: the mean m_r + correction overflowed in its correction (2/3 of 3.4e308)
+    before m_r was added, so known-cross refused means of -1.7e308, 1.7e308, 1.7e308 that
+    naive fuses to 5.67e307; ei and ici alike (gain_mean). Each now agrees with the same
+    rule on the means divided by 2^20 and scaled back."""
+    M = np.array([[-1.7e308], [1.7e308], [1.7e308]])
+    C = np.ones((3, 1, 1))
+    cross = np.zeros((3, 3, 1, 1))
+    cross[0, 0] = cross[1, 1] = cross[2, 2] = 1.0
+    naive = fo.fuse(M, C, "naive").mean
+    np.testing.assert_allclose(naive, [1.7e308 / 3], rtol=1e-15)
+    np.testing.assert_allclose(fo.fuse(M, C, "known-cross", cross=cross).mean, naive,
+                               rtol=1e-15)
+    M2 = np.array([[1.5546171585032048e+308, 1.4868991974538816e+308],
+                   [1.5877419589967942e+308, -1.5536402496854725e+308]])
+    C2 = np.array([[[6.263140775677595, 1.6624627626004775],
+                    [1.6624627626004775, 4.112101286563053]],
+                   [[6.403818740744428, 0.03788878049541373],
+                    [0.03788878049541373, 4.337752800769174]]])
+    for method in ("ei", "ici"):
+        scaled = fo.fuse(M2 / 2**20, C2, method).mean * 2**20
+        np.testing.assert_allclose(fo.fuse(M2, C2, method).mean, scaled, rtol=1e-13)
