@@ -45,8 +45,9 @@ class Estimates:
             object.__setattr__(self, "time", check_time(self.time))
             arrays = _arrays(self.means, self.covs, self.ids)
         except FusionInputError as exc:  # say whose estimates, when it is known
-            where = " ".join(f"{k} {v!r}" for k, v in (("of node", self.node),
-                                                      ("at time", self.time)) if v is not None)
+            where = " ".join(f"{k} {_shown(v)}" for k, v in (("of node", self.node),
+                                                                 ("at time", self.time))
+                             if v is not None)
             raise FusionInputError(f"Estimates {where}: {exc}" if where else str(exc)) from None
         for name, value in zip(("means", "covs", "ids"), arrays, strict=True):
             value = np.array(value, copy=True)
@@ -133,7 +134,10 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
 
 
 def _numeric_ids(a: np.ndarray) -> np.ndarray:
-    """An integer or float64/32 array of ids (m,) as int64: whole numbers within int64."""
+    """An integer or float array of ids (m,) as int64: whole numbers within int64 (floats
+    compared as float64: float16's overflowed comparing with 2^63, fuzz L2)."""
+    if a.dtype.kind == "f":
+        a = a.astype(np.float64)
     if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
         raise FusionInputError("ids must be integers")
     if a.size and not _fit_int64(a):
@@ -202,7 +206,8 @@ def check_time(time) -> float | None:
         return None
     value = finite_real(time)
     if value is None:
-        raise FusionInputError(f"time must be a finite real number or None, got {time!r}")
+        raise FusionInputError(f"time must be a finite real number or None, got "
+                               f"{_shown(time)}")
     check_exact_time(time)
     return value
 
@@ -217,6 +222,6 @@ def check_exact_time(time) -> None:
     its first."""
     if isinstance(time, numbers.Integral) and not -_EXACT <= int(time) <= _EXACT:
         raise FusionInputError(
-            f"time {int(time)} is an integer beyond 2^53, where float64 (the type of a time "
-            "stamp) does not hold every integer: give times as seconds, e.g. nanoseconds / "
-            "1e9, or counted from an epoch near them")
+            f"time {short_repr(int(time))} is an integer beyond 2^53, where float64 (the type "
+            "of a time stamp) does not hold every integer: give times as seconds, e.g. "
+            "nanoseconds / 1e9, or counted from an epoch near them")

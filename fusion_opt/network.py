@@ -87,11 +87,12 @@ class Network:
                                    f"{list(self.trackers)}")
         lost = self._check_lost(lost, scans)
         time = check_time(time)  # before any node steps
-        out = {}
+        out, stepped = {}, []
         try:
             for name, tracker in self.trackers.items():
                 if name in scans:
                     estimates = _tracker_step(name, tracker, scans[name])
+                    stepped.append(name)  # lost ones too: a retry would step them twice
                     if name not in lost:
                         out[name] = estimates
             for name in self.order:
@@ -99,9 +100,10 @@ class Network:
                 reports = {s: out[s] for s in node.sources if s in out}
                 if reports:
                     out[name] = _processing_step(name, node, reports, time)
+                    stepped.append(name)
         except (FusionInputError, FusionSolverError) as exc:
-            stepped = f" (nodes {list(out)} had stepped)" if out else ""
-            raise in_context(exc, "", stepped) from exc
+            said = f" (nodes {stepped} had stepped)" if stepped else ""
+            raise in_context(exc, "", said) from exc
         return out
 
     def _check_lost(self, lost, scans) -> frozenset:

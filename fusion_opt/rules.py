@@ -526,6 +526,13 @@ def cross_array(cross, B: int, N: int, n: int, batch: bool) -> np.ndarray:
     return cross if cross.flags.writeable else cross.copy()  # one array type compiled
 
 
+def _largest_difference(x, y) -> str:
+    """max |x - y| as a message shows it; one past float64 (entries near +-1.8e308, fuzz
+    L6: "by inf" and an overflow warning) as twice the largest half-difference."""
+    half = np.abs(0.5 * x - 0.5 * y).max()
+    return f"{2.0 * half:.3g}" if half < 0.5 * np.finfo(float).max else f"2 x {half:.3g}"
+
+
 def _cross_error(code, where, condition, covs, cross, batch) -> FusionInputError:
     """The FusionInputError of `_check_cross` or of the whitened joint's factorisation."""
     b, i, j = (int(x) for x in where)
@@ -536,13 +543,12 @@ def _cross_error(code, where, condition, covs, cross, batch) -> FusionInputError
         value = cross.reshape(-1)[b * cross[0].size + i]
         return FusionInputError(f"cross has a non-finite value {value} at index {idx}")
     if code == CROSS_ASYMMETRIC:
-        asym = np.abs(cross[b, i, j] - cross[b, j, i].T).max()
         return FusionInputError(f"{problem}cross is not symmetric: cross[{i}, {j}] differs "
-                                f"from cross[{j}, {i}]^T by {asym:.3g}")
+                                f"from cross[{j}, {i}]^T by "
+                                f"{_largest_difference(cross[b, i, j], cross[b, j, i].T)}")
     if code == CROSS_DIAGONAL:
-        diag = np.abs(cross[b, i, i] - covs[b, i]).max()
         return FusionInputError(f"{problem}cross[{i}, {i}] differs from covs of node {i} by "
-                                f"{diag:.3g}")
+                                f"{_largest_difference(cross[b, i, i], covs[b, i])}")
     if code == CROSS_NOT_PD:
         return FusionInputError(f"{problem}cross: the joint covariance is not positive "
                                 "definite")

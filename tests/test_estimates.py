@@ -169,3 +169,17 @@ def test_an_integer_time_beyond_2_53_is_refused_everywhere_a_time_is_given():
     with pytest.raises(fo.FusionInputError, match="integer beyond 2"):
         kf.step([], time=t)
     assert kf.steps == 0
+
+
+def test_float16_ids_and_long_times_are_refused_or_kept_without_warnings():
+    """Fuzz L2, L8: float16 ids warned (an overflow comparing them with 2^63), which
+    -W error turned into a crash; a time of 1,000 digits was printed whole, twice."""
+    import warnings
+
+    one = (np.zeros((1, 2)), np.eye(2)[None])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fo.Estimates(*one, np.array([7.0], dtype=np.float16)).ids.tolist() == [7]
+        with pytest.raises(fo.FusionInputError) as info:
+            fo.Estimates(*one, None, -10**1000, "n")
+    assert len(str(info.value)) < 300 and "(1002 digits)" in str(info.value)

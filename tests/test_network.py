@@ -329,3 +329,15 @@ def test_a_chain_of_1200_processing_nodes_is_ordered_and_steps():
     assert net.order == [f"n{i}" for i in range(1200)]
     out = net.step({"t": (np.ones((1, 2)), np.eye(2)[None])})
     np.testing.assert_array_equal(out["n1199"].means, [[1.0, 1.0]])
+
+
+def test_a_failed_step_names_the_lost_trackers_that_stepped():
+    """Fuzz L4: a failed step listed the nodes that had stepped from its reports only, so
+    a lost tracker, which steps too, was left out and a caller retrying would step it
+    twice."""
+    net = fo.Network({"a": EchoTracker(), "b": EchoTracker()},  # dims beyond n = 2:
+                     {"p": fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0,
+                                             dims=[3])})  # the node refuses its step
+    e = fo.Estimates(np.zeros((1, 2)), np.eye(2)[None])
+    with pytest.raises(fo.FusionInputError, match=r"\(nodes \['a', 'b'\] had stepped\)$"):
+        net.step({"a": e, "b": e}, lost=["a"])

@@ -355,3 +355,19 @@ def test_a_rule_whose_trace_overflows_is_refused_without_a_warning():
         with pytest.raises(fo.FusionInputError, match="overflows float64"):
             fo.fuse(np.ones((2, 2)), np.stack([1e308 * np.eye(2), 1.7e308 * np.eye(2)]),
                     "fast-ci")
+
+
+def test_an_asymmetry_past_float64_is_said_without_inf_or_a_warning():
+    """Fuzz L6: cross blocks near +-1.8e308 that differ by more than float64 holds made the
+    message say "by inf" and warn of an overflow (an error under -W error)."""
+    import warnings
+
+    covs = np.stack([np.eye(2) * 1e308] * 2)
+    cross = np.zeros((2, 2, 2, 2))
+    cross[0, 0], cross[1, 1] = covs
+    cross[0, 1] = [[1.7e308, 0.0], [0.0, 0.0]]
+    cross[1, 0] = [[-1.7e308, 0.0], [0.0, 0.0]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(fo.FusionInputError, match=r"not symmetric: .* by 2 x 1\.7e\+308$"):
+            fo.fuse(np.zeros((2, 2)), covs, "known-cross", cross=cross)
