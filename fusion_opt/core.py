@@ -477,9 +477,11 @@ def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
     """(what, bytes, name of its limit in fusion_opt.limits) of the first estimate of B
     problems' memory over its limit (`check_memory`), or None. The numbers come first and
     the words only for one over its limit (a call's fixed cost: 0.55 against 1.4 us)."""
-    work = joint_bytes(n, N) if req.method == "known-cross" else \
+    cross = req.method == "known-cross"  # its cross, copied whole where it is not float64
+    work = joint_bytes(n, N) if cross else \
         0.0 if req.backend is None else working_bytes(n, N, req.backend)
-    need = (batch_bytes(B, N, n), work, conic_bytes(n, N) if req.backend in _CONIC else 0.0)
+    arrays = batch_bytes(B, N, n) + (8.0 * B * (N * n) ** 2 if cross else 0.0)  # (fuzz L9)
+    need = (arrays, work, conic_bytes(n, N) if req.backend in _CONIC else 0.0)
     limit = (limits.working_memory, limits.working_memory, limits.conic_memory)
     if need[0] <= limit[0] and need[1] <= limit[1] and need[2] <= limit[2]:
         return None

@@ -314,8 +314,9 @@ def test_known_cross_beyond_memory_is_refused_before_its_joint_is_made(monkeypat
     from fusion_opt.limits import batch_bytes, joint_bytes
 
     N, n = 20, 6
-    assert batch_bytes(1, N, n) < 1e5 < joint_bytes(n, N)
-    monkeypatch.setattr(fo.limits, "working_memory", 1e5)
+    copy = 8.0 * (N * n) ** 2  # of the caller's cross, counted with the arrays
+    assert batch_bytes(1, N, n) + copy < 2e5 < joint_bytes(n, N)
+    monkeypatch.setattr(fo.limits, "working_memory", 2e5)
     cross = np.zeros((N, N, n, n))
     cross[np.arange(N), np.arange(N)] = np.eye(n)
     with pytest.raises(fo.FusionSolverError, match=r"^method 'known-cross' failed with status "
@@ -374,3 +375,18 @@ def test_a_list_nested_past_the_recursion_limit_is_refused_by_name():
         deep_bool = [deep_bool]
     with pytest.raises(fo.FusionInputError, match="boolean"):
         fo.bci([[0.0, deep_bool]], np.eye(2)[None])
+
+
+def test_a_known_cross_batch_counts_the_copy_of_its_cross(monkeypatch):
+    """Fuzz L9: fuse_batch copied a float32 or read-only cross whole (B (N n)^2 doubles)
+    where the memory check counted one problem's joint."""
+    from fusion_opt.limits import batch_bytes, joint_bytes
+
+    B, N, n = 50, 3, 4
+    monkeypatch.setattr(fo.limits, "working_memory",
+                        batch_bytes(B, N, n) + 2 * joint_bytes(n, N))
+    cross = np.zeros((B, N, N, n, n), dtype=np.float32)
+    cross[:, np.arange(N), np.arange(N)] = np.eye(n)
+    with pytest.raises(fo.FusionSolverError, match=r"memory_limit.*the arrays of 50 problems"):
+        fo.fuse_batch(np.zeros((B, N, n)), np.tile(np.eye(n), (B, N, 1, 1)), "known-cross",
+                      cross=cross)
