@@ -215,12 +215,25 @@ def check_time(time) -> float | None:
 _EXACT = 2**53  # float64 holds every integer up to here
 
 
+def _inexact_whole(time) -> bool:
+    """A whole number beyond 2^53 of another type than an integer or a float64 (a Fraction,
+    a long double) that float64 does not hold (fuzz L1: Fraction(2^53 + 1) was rounded)."""
+    if isinstance(time, float | numbers.Integral):
+        return False
+    try:
+        whole = int(time)
+        return whole == time and abs(whole) > _EXACT and float(time) != time
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
 def check_exact_time(time) -> None:
     """Refuses an integer time beyond 2^53, which float64 does not hold exactly (nanoseconds
     since 1970 lose up to 128 ns: two stamps merged, and a step back went unseen, fuzz
     K6); refused whether or not this one rounds, so that a stream of them is refused at
     its first."""
-    if isinstance(time, numbers.Integral) and not -_EXACT <= int(time) <= _EXACT:
+    if isinstance(time, numbers.Integral) and not -_EXACT <= int(time) <= _EXACT \
+            or _inexact_whole(time):
         raise FusionInputError(
             f"time {short_repr(int(time))} is an integer beyond 2^53, where float64 (the type "
             "of a time stamp) does not hold every integer: give times as seconds, e.g. "

@@ -183,3 +183,18 @@ def test_float16_ids_and_long_times_are_refused_or_kept_without_warnings():
         with pytest.raises(fo.FusionInputError) as info:
             fo.Estimates(*one, None, -10**1000, "n")
     assert len(str(info.value)) < 300 and "(1002 digits)" in str(info.value)
+
+
+def test_a_whole_time_beyond_2_53_of_another_type_that_float64_rounds_is_refused():
+    """Fuzz L1: Fraction(2^53 + 1) and a long double 2^53 + 1 were rounded to 2^53 as
+    silently as integers were (K6); a Fraction of 1/3, a float32 of 1e20 and a long double
+    of 0.1 are times as before."""
+    from fractions import Fraction
+
+    one = (np.zeros((1, 1)), np.ones((1, 1, 1)), None)
+    for t in (Fraction(2**53 + 1), np.longdouble(2**53) + np.longdouble(1)):
+        with pytest.raises(fo.FusionInputError, match="is an integer beyond 2"):
+            fo.Estimates(*one, t)
+    assert fo.Estimates(*one, Fraction(1, 3)).time == 1 / 3
+    assert fo.Estimates(*one, np.float32(1e20)).time == float(np.float32(1e20))
+    assert fo.Estimates(*one, np.longdouble(0.1)).time == 0.1
