@@ -286,7 +286,7 @@ def test_nearest_with_more_close_pairs_than_memory_is_refused_before_making_them
 
 
 @pytest.mark.parametrize("d", [1, 2, 4, 8])
-@pytest.mark.parametrize("sources", [2, 12, 1200])
+@pytest.mark.parametrize("sources", [2, 12, 600])
 def test_the_memory_counted_for_close_pairs_covers_what_nearest_allocates(d, sources):
     """Fuzz K5: the pairs' arrays were counted at 5 + d doubles a pair, up to 40% below what
     `_nearest` allocates at its peak (tracemalloc, which sees numpy's arrays), so that a
@@ -296,7 +296,7 @@ def test_the_memory_counted_for_close_pairs_covers_what_nearest_allocates(d, sou
     from fusion_opt.association import _nearest, pair_bytes
 
     rng = np.random.default_rng(d)
-    M = 1200
+    M = 600
     points, owner = 1e-3 * rng.normal(size=(M, d)), np.arange(M) % sources
     _nearest(points, owner, 1.0)  # every pair within the threshold
     tracemalloc.start()
