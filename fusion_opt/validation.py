@@ -106,6 +106,8 @@ def real_array(x, name: str) -> np.ndarray:
     if a.dtype.kind == "O" and a.size and all(
             isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in a.flat):
         return _reals(a, name)  # Fraction, int beyond int64: numbers numpy keeps as objects
+    if a.dtype.kind == "O" and a.size == 0:  # an empty object array (a table's empty
+        return a.astype(float)  # column) holds no wrong value (fuzz L3)
     if a.dtype.kind not in "iuf":
         kind = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes",
                 "O": "objects (ragged or not numbers)"}.get(a.dtype.kind, str(a.dtype))

@@ -198,3 +198,10 @@ def test_a_whole_time_beyond_2_53_of_another_type_that_float64_rounds_is_refused
     assert fo.Estimates(*one, Fraction(1, 3)).time == 1 / 3
     assert fo.Estimates(*one, np.float32(1e20)).time == float(np.float32(1e20))
     assert fo.Estimates(*one, np.longdouble(0.1)).time == 0.1
+
+
+def test_an_empty_object_array_of_ids_is_no_ids():
+    """Fuzz L3: an empty object array (a table's empty column) was refused as "objects
+    (ragged or not numbers)" where [] is accepted."""
+    e = fo.Estimates(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.array([], dtype=object))
+    assert len(e) == 0 and e.ids.dtype == np.int64
