@@ -62,7 +62,14 @@ from .results import (
 )
 from .scaling import conic_data
 from .simplex import to_simplex
-from .validation import CRITERIA, SYMMETRY_RTOL, definiteness_error, real_array, symmetrised
+from .validation import (
+    CRITERIA,
+    SYMMETRY_RTOL,
+    definiteness_error,
+    kernel_array,
+    real_array,
+    symmetrised,
+)
 
 DEFAULT_BACKEND = "newton"
 # A result is OPTIMAL when its certificate proves f(w) - f* <= OPTIMAL_RTOL |f| ("trace";
@@ -175,7 +182,7 @@ def arrays(means, covs, batch: bool, names: Names = _NAMES, req: Request | None 
     if req is not None:
         B, N, n = means.shape
         check_memory(req, n, N, B)
-    return _writable(means), _writable(covs)
+    return kernel_array(means), kernel_array(covs)
 
 
 def _shape_error(means, covs, batch: bool, names: Names) -> FusionInputError:
@@ -193,14 +200,6 @@ def _shape_error(means, covs, batch: bool, names: Names) -> FusionInputError:
     what = dict(zip("BNn", means.shape if batch else (1, *means.shape), strict=True))
     zero = [k for k, v in what.items() if v == 0]
     return FusionInputError(f"{names.means} and {names.covs} are empty ({zero[0]} = 0)")
-
-
-def _writable(a: np.ndarray) -> np.ndarray:
-    """a C-contiguous and writable: numba compiles a kernel once per array type, and a
-    read-only array (an Estimates' means, say) is another type, which would cost the whole
-    compiled path again (15 s) for the same arithmetic. The kernels never write to it."""
-    a = np.ascontiguousarray(a)
-    return a if a.flags.writeable else a.copy()
 
 
 def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):

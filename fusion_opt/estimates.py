@@ -117,16 +117,19 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
     if ids is None:
         return np.arange(m, dtype=np.int64)
     numeric = isinstance(ids, np.ndarray) and ids.dtype.kind in "iuf" and ids.dtype.itemsize <= 8
-    if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
-            _beyond_int64(ids) is not None:  # named exactly, before real_array's float range
-        raise _out_of_range(_beyond_int64(ids))
-    try:
-        a = real_array(ids, "ids")  # strings, booleans, complex, ragged: refused by name
-    except FusionInputError as exc:
-        raise FusionInputError(f"ids must be integers (map other track names to integers): "
-                               f"{exc}") from None
-    if a.shape != (m,):
-        raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {a.shape}")
+    if not numeric:  # strings, booleans, complex, ragged: refused by name
+        if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
+                _beyond_int64(ids) is not None:  # named exactly, before real_array's range
+            raise _out_of_range(_beyond_int64(ids))
+        try:
+            shape = real_array(ids, "ids").shape
+        except FusionInputError as exc:
+            raise FusionInputError(f"ids must be integers (map other track names to "
+                                   f"integers): {exc}") from None
+    else:
+        shape = ids.shape
+    if shape != (m,):
+        raise FusionInputError(f"ids must have shape ({m},), one per estimate, got {shape}")
     out = _numeric_ids(ids) if numeric else _exact_ids(ids)
     if unique and len(np.unique(out)) != m:
         raise FusionInputError(f"ids must be unique within one Estimates, got {out.tolist()}")
@@ -138,8 +141,8 @@ def _numeric_ids(a: np.ndarray) -> np.ndarray:
     compared as float64: float16's overflowed comparing with 2^63, fuzz L2)."""
     if a.dtype.kind == "f":
         a = a.astype(np.float64)
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a))):
-        raise FusionInputError("ids must be integers")
+        if not np.all(np.isfinite(a) & (a == np.round(a))):
+            raise FusionInputError("ids must be integers")
     if a.size and not _fit_int64(a):
         raise _out_of_range(_beyond_int64(a.tolist()))
     return a.astype(np.int64)

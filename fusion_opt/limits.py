@@ -82,8 +82,9 @@ def working_bytes(n: int, N: int, backend: str | None = None) -> float:
 
 def joint_bytes(n: int, N: int) -> float:
     """Estimated bytes of known-cross's work arrays for one problem: the joint whitened
-    node by node and its Cholesky factor, (N n)^2 doubles each, and a copy of cross."""
-    return 8.0 * 3.0 * (N * n) ** 2
+    node by node and its Cholesky factor, (N n)^2 doubles each (the copy of cross a batch
+    may need is counted with the batch's arrays, `core.over_memory`)."""
+    return 8.0 * 2.0 * (N * n) ** 2
 
 
 def estimates_bytes(m: int, n: int) -> float:

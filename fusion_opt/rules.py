@@ -95,13 +95,14 @@ from .linalg import (
     jit,
     lower_inverse,
     lower_solve,
+    lower_t_solve,
     matmul,
     matmul_t,
     upper_inverse,
 )
 from .prepare import MAX_CONDITION, scaled
 from .results import FusionInputError, FusionSolverError, Status, overflow_error
-from .validation import SYMMETRY_RTOL, real_array
+from .validation import SYMMETRY_RTOL, kernel_array, real_array
 
 CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
 _LN2 = np.log(2.0)
@@ -276,7 +277,6 @@ PAIR_ONLY = frozenset({"ici", "ei"})
 # Each rule's kernel (`compiled`): the CI formula at fixed weights by `fuse_fixed`, ici and
 # ei by `fuse_pair`, known-cross by `fuse_known_cross`.
 NAIVE, FAST_CI, IFCI, ICI, EI, KNOWN_CROSS = 0, 1, 2, 3, 4, 5
-FIXED_WEIGHTS = frozenset({"naive", "fast-ci", "ifci"})
 COMPILED = {"naive": NAIVE, "fast-ci": FAST_CI, "ifci": IFCI, "ici": ICI, "ei": EI,
             "known-cross": KNOWN_CROSS}
 OK, NOT_PD, OVERFLOW, RATIO = 0, 1, 2, 3
@@ -311,7 +311,7 @@ def _numerical_error(method, code, problem: str) -> FusionSolverError:
     """A rule's NOT_PD (in the scaled units) or RATIO, for the problem named by `problem`."""
     if code == RATIO:
         what = "the covariances' ratio exceeds the double-precision range"
-    elif method in FIXED_WEIGHTS:
+    elif COMPILED[method] in (NAIVE, FAST_CI, IFCI):
         what = "the sum of the informations is not positive definite in double precision"
     else:
         what = "the fused covariance is not positive definite in double precision"
@@ -522,8 +522,7 @@ def cross_array(cross, B: int, N: int, n: int, batch: bool) -> np.ndarray:
     want = (B, N, N, n, n) if batch else (N, N, n, n)
     if cross.shape != want:
         raise FusionInputError(f"cross must have shape {want}, got {cross.shape}")
-    cross = np.ascontiguousarray(cross if batch else cross[None])
-    return cross if cross.flags.writeable else cross.copy()  # one array type compiled
+    return kernel_array(cross if batch else cross[None])
 
 
 def _largest_difference(x, y) -> str:
@@ -572,7 +571,7 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
     OVERFLOW."""
     B, N, n = means.shape
     m = N * n
-    C, R, Z = np.empty((m, m)), np.empty((m, m)), np.empty((m, n))
+    C, R = np.empty((m, m)), np.empty((m, m))
     At, Zt, Vt, G = np.empty((n, m)), np.empty((n, m)), np.empty((n, m)), np.empty((m, n))
     U, Ui, P, L = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
     X = np.empty((2, n, n))
@@ -584,7 +583,7 @@ def fuse_known_cross(F, means, covs, cross, k, trace: bool, mean, cov, obj, shar
             code, condition[b] = _joint(F[b], cross[b], k[b], X, C, R)
         if code != OK:
             return code
-        _design(F[b], R, Z, G, At, Zt, Vt, U, Ui, P)
+        _design(F[b], R, G, At, Zt, Vt, U, Ui, P)
         for i in range(N):
             matmul_t(P, G[i * n:(i + 1) * n], X[0])  # P G_i^T
             matmul(X[0], F[b, i], K[i])
@@ -619,15 +618,11 @@ def _joint(F, cross, k, X, C, R):
 
 
 @jit
-def _design(F, R, Z, G, At, Zt, Vt, U, Ui, P):
+def _design(F, R, G, At, Zt, Vt, U, Ui, P):
     """With the joint's factor R: the whitened design R^-1 [F_1; ...; F_N] (m, n), its QR's
-    U, P = U^-1 U^-T, and G = R^-T R^-1 [F_i] (Z, At, Zt, Vt, Ui scratch)."""
+    U, P = U^-1 U^-T, and G = R^-T R^-1 [F_i] (At, Zt, Vt, Ui scratch)."""
     N, n = F.shape[0], F.shape[1]
-    for i in range(N):
-        for a in range(n):
-            for c in range(n):
-                Z[i * n + a, c] = F[i, a, c]
-    lower_solve(R, Z, G)
+    lower_solve(R, F.reshape(N * n, n), G)  # the stacked factors, a view
     for a in range(N * n):
         for c in range(n):
             Zt[c, a] = At[c, a] = G[a, c]
@@ -639,7 +634,7 @@ def _design(F, R, Z, G, At, Zt, Vt, U, Ui, P):
             for d in range(max(a, c), n):
                 t += Ui[a, d] * Ui[c, d]
             P[a, c] = t
-    _lower_t_solve(R, Zt, G)
+    lower_t_solve(R, Zt, G)
 
 
 @jit
@@ -771,23 +766,6 @@ def _whitened_joint(F, cross, k, X, C):
                         t += F[i, a, d] * T[d, c]
                     C[i * n + a, j * n + c] = t
                     C[j * n + c, i * n + a] = t
-
-
-@jit
-def _lower_t_solve(L, Bt, X):
-    """X = L^-T B for a lower-triangular L (m, m) and B (m, k) given as Bt (k, m), by back
-    substitution in rows of L (each x_i, once known, is taken from the rows above it:
-    column by column, L's stride made it 6.6 against 1.0 ms at m = 1024, k = 4)."""
-    m, kk = L.shape[0], Bt.shape[0]
-    for i in range(m):
-        for j in range(kk):
-            X[i, j] = Bt[j, i]
-    for i in range(m - 1, -1, -1):
-        for j in range(kk):
-            X[i, j] /= L[i, i]
-        for p in range(i):
-            for j in range(kk):
-                X[p, j] -= L[i, p] * X[i, j]
 
 
 @jit

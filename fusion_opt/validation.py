@@ -161,6 +161,14 @@ def _contains_bool(value) -> bool:
 _PLAIN = (float, int)  # exactly these types: bool is an int subclass, np.float64 a float one
 
 
+def kernel_array(a: np.ndarray) -> np.ndarray:
+    """a C-contiguous and writable: numba compiles a kernel once per array type, and a
+    read-only array (an Estimates' means, say) is another type, which would cost the whole
+    compiled path again (15 s) for the same arithmetic. The kernels never write to it."""
+    a = np.ascontiguousarray(a)
+    return a if a.flags.writeable else a.copy()
+
+
 def finite_array(x, name: str) -> np.ndarray:
     """real_array(x, name) whose every value is finite."""
     a = real_array(x, name)

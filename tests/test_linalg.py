@@ -156,3 +156,17 @@ def test_lower_inverse_by_rows_gives_the_bits_of_the_column_loop(n):
             loop[i, j] = t / L[i, i]
     np.testing.assert_array_equal(X, loop)
     assert np.abs(X @ L - np.eye(n)).max() <= 1e-12
+
+
+@pytest.mark.parametrize("m, k", [(1, 1), (5, 2), (70, 4)])
+def test_lower_t_solve_is_the_transposed_solve(m, k):
+    """lower_t_solve(L, B^T) = L^-T B against scipy's triangular solve."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(m + k)
+    L = np.tril(rng.standard_normal((m, m))) + 3.0 * np.eye(m)
+    B = rng.standard_normal((m, k))
+    X = np.empty((m, k))
+    linalg.lower_t_solve(L, np.ascontiguousarray(B.T), X)
+    ref = scipy.linalg.solve_triangular(L, B, lower=True, trans="T")
+    assert np.abs(X - ref).max() <= 1e-13 * np.abs(ref).max()
