@@ -171,6 +171,42 @@ def test_known_cross_refuses_a_joint_covariance_beyond_the_condition_limit():
     np.testing.assert_allclose(fuse(1 - 1e-10).cov, (1 - 0.5e-10) * np.eye(2), rtol=1e-6)
 
 
+def test_independent_nodes_do_not_make_a_correlated_pair_singular():
+    """Fuzz L7: a pair correlated at 1 - 1e-13 (condition 2e13) fused alone, but with 30
+    independent nodes beside it was refused, the estimate |C|_F |C^-1|_F growing with
+    the joint's order; now the joint's estimate is the largest of independent blocks'.
+    Reference: the pair is one node of information 2 / (1 + rho) beside the others."""
+    rng = np.random.default_rng(7)
+    n, rho = 2, 1 - 1e-13
+    for extra in (0, 30):
+        N = 2 + extra
+        cross = np.zeros((N, N, n, n))
+        cross[np.arange(N), np.arange(N)] = np.eye(n)
+        cross[0, 1] = cross[1, 0] = rho * np.eye(n)
+        means = rng.standard_normal((N, n))
+        r = fo.fuse(means, np.tile(np.eye(n), (N, 1, 1)), "known-cross", cross=cross)
+        info = extra + 2 / (1 + rho)
+        np.testing.assert_allclose(r.cov, np.eye(n) / info, rtol=1e-15, atol=0)
+        mean = (means[2:].sum(0) + (means[0] + means[1]) / (1 + rho)) / info
+        np.testing.assert_allclose(r.mean, mean, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("N, n", [(2, 1), (3, 2), (8, 4), (20, 3)])
+def test_the_joint_condition_estimate_bounds_the_condition_number(N, n):
+    """`_joint_condition` is at least numpy's 2-norm condition number of the joint and at
+    most m^1.5 times it (m = N n), on random joints from well to badly conditioned."""
+    from fusion_opt.rules import _joint_condition, _norm1
+    rng = np.random.default_rng(N * n)
+    m = N * n
+    for spread in (0.0, 4.0, 10.0):
+        Q = np.linalg.qr(rng.standard_normal((m, m)))[0]
+        C = (Q * 10.0 ** rng.uniform(-spread, 0.0, m)) @ Q.T
+        C = 0.5 * (C + C.T)
+        Ri = np.linalg.inv(np.linalg.cholesky(C))
+        estimate, cond = _joint_condition(_norm1(C), Ri), np.linalg.cond(C)
+        assert cond * (1 - 1e-6) <= estimate <= m**1.5 * cond * (1 + 1e-6)
+
+
 def _independent(covs):
     """The joint covariance (N, N, n, n) of independent nodes: known-cross is naive."""
     N = len(covs)
