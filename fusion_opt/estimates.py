@@ -15,6 +15,7 @@ from one step to the next is the producer's promise (each tracker's docstring sa
 
 from __future__ import annotations
 
+import decimal
 import numbers
 from collections.abc import Hashable
 from dataclasses import dataclass
@@ -121,8 +122,9 @@ def track_ids(ids, m: int, unique: bool = True) -> np.ndarray:
         if isinstance(ids, list | tuple) and all(type(v) is int for v in ids) and \
                 _beyond_int64(ids) is not None:  # named exactly, before real_array's range
             raise _out_of_range(_beyond_int64(ids))
+        shape = _decimal_shape(ids)
         try:
-            shape = real_array(ids, "ids").shape
+            shape = real_array(ids, "ids").shape if shape is None else shape
         except FusionInputError as exc:
             raise FusionInputError(f"ids must be integers (map other track names to "
                                    f"integers): {exc}") from None
@@ -146,6 +148,17 @@ def _numeric_ids(a: np.ndarray) -> np.ndarray:
     if a.size and not _fit_int64(a):
         raise _out_of_range(_beyond_int64(a.tolist()))
     return a.astype(np.int64)
+
+
+def _decimal_shape(ids) -> tuple[int, ...] | None:
+    """The shape of a flat list, tuple or object array of Decimals (ids read from a
+    database's NUMERIC column), which `real_array` refuses as objects; else None. Their
+    values are then read exactly, as a list of ints is (`_exact_ids`)."""
+    if isinstance(ids, list | tuple) or (isinstance(ids, np.ndarray) and ids.dtype == object
+                                          and ids.ndim == 1):
+        if len(ids) and all(isinstance(v, decimal.Decimal) for v in ids):
+            return (len(ids),)
+    return None
 
 
 def _exact_ids(ids) -> np.ndarray:
@@ -189,6 +202,8 @@ def _out_of_range(value) -> FusionInputError:
 def _shown(value) -> str:
     """A number as a message shows it: numpy's scalars as their value, not np.float64(...),
     and an int of 400 digits shortened (`short_repr`)."""
+    if isinstance(value, decimal.Decimal) and value.is_finite() and value == value.to_integral():
+        value = int(value)  # a whole Decimal by its digits, as an int is shown
     return short_repr(value.item() if isinstance(value, np.generic) and
                       value.dtype.itemsize <= 8 else value)
 

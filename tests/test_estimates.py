@@ -148,6 +148,26 @@ def test_ids_above_2_53_from_any_container_are_kept_exactly():
             fo.Estimates(means, covs, bad)
 
 
+def test_decimal_ids_from_a_database_column_are_read_exactly():
+    """Fuzz L leftover: Decimals (a NUMERIC column) were refused as "not numbers"; whole
+    ones are ids, read exactly past 2^53 (in a list, a tuple or an object array), and the
+    others are refused by value, as ints and floats are."""
+    from decimal import Decimal
+
+    means, covs = np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
+    big = 2**62 + 1
+    for ids in ([Decimal(big), Decimal("5.000")], (Decimal(big), Decimal(5)),
+                np.array([Decimal(big), Decimal(5)], dtype=object)):
+        assert fo.Estimates(means, covs, ids).ids.tolist() == [big, 5], ids
+    for bad, said in (([Decimal("1.5"), Decimal(2)], r"got Decimal\('1.5'\) at index 0"),
+                      ([Decimal(1), Decimal("NaN")], r"got Decimal\('NaN'\) at index 1"),
+                      ([Decimal(2**63), Decimal(1)], r"64-bit integer .*got 9223372036854775808$"),
+                      ([Decimal(1)], r"shape \(2,\)"),
+                      ([Decimal(1), Decimal(1)], "unique")):
+        with pytest.raises(fo.FusionInputError, match=said):
+            fo.Estimates(means, covs, bad)
+
+
 def test_an_integer_time_beyond_2_53_is_refused_everywhere_a_time_is_given():
     """Fuzz K6: nanoseconds since 1970 (1.7e18) became a float 128 ns off; two stamps 60 ns
     apart merged and a step back in time passed the forward check. Refused, with what to
