@@ -8,8 +8,9 @@ Problems: the kinds of `conftest.extreme_instance` ("random", "diagonal",
 are MBCI with p in [0, 1] and chi down to 1e-3. Each backend fuses them with
 `fo.fuse_batch`, and each problem again alone with `fo.fuse`. Failures counted by kind:
 
-    error             FusionInputError on a valid input (FusionSolverError is counted
-                      apart as solver_error: a conic solver may fail, with a message)
+    error             FusionInputError on a valid input (a conic solver's FusionSolverError
+                      is counted apart as solver_error, at most SOLVER_ERROR_SHARE of its
+                      problems; a native backend's is a failure, solver_error)
     nonfinite, asymmetric, not_pd, off_simplex, objective_vs_cov   (test_fuzz.check_estimate)
     batch_mismatch    a fuse_batch problem differs from fo.fuse by more than 1e-9 relative
     worse_than_best_node, objective_vs_exact, unverified_improvement (item 9)
@@ -71,6 +72,8 @@ PLAN = [
     ("slsqp", [(3, 3), (5, 4), (2, 6), (8, 2)], 100),
 ]
 BATCH_RTOL = 1e-9
+NATIVE = ("newton", "closed-form")  # never a FusionSolverError: each one is a failure
+SOLVER_ERROR_SHARE = 0.05  # of a conic backend's problems (counted in the summary)
 
 
 def _problems(rng, B, N, n, mbci):
@@ -104,7 +107,7 @@ class Tally:
             "inaccurate_fused": 0, "solver_error": 0, "failures": collections.Counter(),
             "optimal_above_1e-10_by_sensitivity": 0, "worst_certificate": {},
             "largest_excess_over_sensitivity": 0.0, "kinds_above_1e-10": collections.Counter(),
-            "batch_not_bitwise": 0,
+            "batch_not_bitwise": 0, "batch_solver_error": 0,
             "seconds": 0.0})
         self.examples, self.not_optimal = [], []
 
@@ -217,33 +220,44 @@ class _One:
 
 
 def _run(tally, backend, criterion, N, n, B, mbci, rng):
+    """B problems through fuse_batch and fo.fuse, each audited (instances counts only the
+    audited ones). A FusionSolverError of a native backend is a failure; a conic solver's
+    is counted (solver_error, batch_solver_error: the batch stops at its first), and the
+    campaign bounds their share (SOLVER_ERROR_SHARE)."""
     kinds, means, covs, args = _problems(rng, B, N, n, mbci)
     method = "mbci" if mbci else "bci"
-    key = (backend, criterion)
+    key, native = (backend, criterion), backend in NATIVE
+    row = tally.rows[key]
     t0 = time.perf_counter()
     try:
         r = fo.fuse_batch(means, covs, method, criterion, backend, **args)
-    except fo.FusionSolverError:
-        r = None  # a conic solver failed on a problem: then problem by problem
-    tally.rows[key]["seconds"] += time.perf_counter() - t0
+    except fo.FusionSolverError as exc:
+        r = None  # then only problem by problem: no batch to compare with
+        row["batch_solver_error"] += 1
+        if native:
+            tally.fail(key, "solver_error", exc)
+    row["seconds"] += time.perf_counter() - t0
     for b in range(B):
         one_args = {k: v[b] for k, v in args.items()}
         scales = exact_scales(args["p_detect"][b], args["chi"][b], N) if mbci else None
         try:
             t0 = time.perf_counter()
             one = fo.fuse(means[b], covs[b], method, criterion, backend, **one_args)
-            tally.rows[key]["seconds"] += time.perf_counter() - t0
+            row["seconds"] += time.perf_counter() - t0
         except fo.FusionSolverError as exc:
-            tally.rows[key]["instances"] += 1
-            tally.rows[key]["solver_error"] += 1
+            row["solver_error"] += 1
             assert backend in str(exc)
+            if native:
+                tally.fail(key, "solver_error", exc)
             continue
         except fo.FusionInputError as exc:
-            tally.rows[key]["instances"] += 1
+            row["instances"] += 1
             tally.fail(key, "error", exc)
             continue
-        _audit(tally, key, kinds[b], one if r is None else _One(r, b), one, means[b],
-               covs[b], criterion, scales)
+        if r is None:
+            _audit(tally, key, kinds[b], one, None, means[b], covs[b], criterion, scales)
+        else:
+            _audit(tally, key, kinds[b], _One(r, b), one, means[b], covs[b], criterion, scales)
 
 
 def test_campaign_every_backend_and_criterion(tmp_path):
@@ -253,7 +267,7 @@ def test_campaign_every_backend_and_criterion(tmp_path):
     for backend, shapes, per_shape in PLAN:
         for criterion in CRITERIA:
             for N, n in shapes:
-                native = backend in ("newton", "closed-form")
+                native = backend in NATIVE
                 chunks = 4 if native else 1
                 for c in range(chunks):
                     _run(tally, backend, criterion, N, n, per_shape // chunks,
@@ -270,6 +284,9 @@ def test_campaign_every_backend_and_criterion(tmp_path):
     assert summary["instances"] >= 10_000
     failures = {k: r["failures"] for k, r in summary["rows"].items() if r["failures"]}
     assert not failures, (failures, tally.examples)
+    for key, r in summary["rows"].items():  # a conic solver may fail, but rarely
+        tried = r["instances"] + r["solver_error"]
+        assert r["solver_error"] <= SOLVER_ERROR_SHARE * tried, (key, r["solver_error"], tried)
 
 
 def _table(summary) -> str:

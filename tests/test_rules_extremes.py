@@ -3,6 +3,8 @@ denormal covariances, nodes 1e150 around 1 with condition numbers up to 1e13, th
 nodes, large and offset means. Never a NaN or inf, never a covariance that is not positive
 definite."""
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 from test_rules import (
@@ -15,7 +17,7 @@ from test_rules import (
     problem,
 )
 from test_rules_exact import to_float
-from test_rules_pairs import decimal_ei, exact_ici_cov
+from test_rules_pairs import W_GRID, decimal_ei, exact_ici_cov, exact_ici_mean
 
 import fusion_opt as fo
 from fusion_opt.rules import PAIR_ONLY, RULES
@@ -51,8 +53,11 @@ def test_denormal_covariances_through_fuse(name):
         P, m = exact_ci(means, covs, exact_weights(name, covs))
     elif name == "known-cross":
         P, m = exact_blue(means, cross)
-    elif name == "ici":
-        P, m = to_float(exact_ici_cov(covs, r.weights[1])), r.mean
+    elif name == "ici":  # at ICI's weight, which no weight of the grid betters
+        w = r.weights[1]
+        P, m = to_float(exact_ici_cov(covs, w)), to_float(exact_ici_mean(means, covs, w))
+        best = min(np.trace(exact_ici_cov(covs, v)) for v in W_GRID)
+        assert np.trace(exact_ici_cov(covs, w)) <= best * (1 + Fraction(1e-15))
     else:
         P, m = decimal_ei(means, covs)
     assert_close(r.cov, P, 1e-12)
@@ -280,5 +285,9 @@ def test_a_fused_mean_in_range_is_not_refused_where_its_correction_alone_overflo
                    [[6.403818740744428, 0.03788878049541373],
                     [0.03788878049541373, 4.337752800769174]]])
     for method in ("ei", "ici"):
+        r = fo.fuse(M2, C2, method)
         scaled = fo.fuse(M2 / 2**20, C2, method).mean * 2**20
-        np.testing.assert_allclose(fo.fuse(M2, C2, method).mean, scaled, rtol=1e-13)
+        np.testing.assert_allclose(r.mean, scaled, rtol=1e-13)
+        exact_mean = decimal_ei(M2, C2)[1] if method == "ei" else \
+            to_float(exact_ici_mean(M2, C2, r.weights[1]))
+        np.testing.assert_allclose(r.mean, exact_mean, rtol=1e-13)

@@ -34,6 +34,16 @@ def exact_ici_cov(covs, w):
     return inv(inv(Pa) + inv(Pb) - inv(w * Pa + (1 - w) * Pb))
 
 
+def exact_ici_mean(means, covs, w):
+    """ICI's mean P [(Y_a - w G) m_a + (Y_b - (1 - w) G) m_b] in Fractions at the float w,
+    G = (w P_a + (1 - w) P_b)^-1 and P = `exact_ici_cov` (Noack et al. 2017)."""
+    Pa, Pb = exact(covs)
+    ma, mb = exact(means)
+    w = Fraction(w)
+    G = inv(w * Pa + (1 - w) * Pb)
+    return exact_ici_cov(covs, w) @ ((inv(Pa) - w * G) @ ma + (inv(Pb) - (1 - w) * G) @ mb)
+
+
 def exact_size(P, criterion) -> Fraction:
     """tr P or det P, exactly: each increases with the criterion."""
     return np.trace(P) if criterion == "trace" else det(P)
