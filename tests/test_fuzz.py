@@ -164,6 +164,22 @@ class Exact:
             return f, (gap / abs(f) if trace else gap)
 
 
+    def mean(self, w, means) -> list:
+        """The fused mean P(w) sum_i w_i Y_i m_i at the float weights w (N,) and means
+        (N, n), Y_i the (scaled) informations: a list of n Decimals."""
+        with localcontext() as ctx:
+            ctx.prec = self.digits
+            wd = [Decimal(float(x)) for x in w]
+            md = [[Decimal(float(x)) for x in row] for row in np.asarray(means, dtype=float)]
+            n = self.n
+            Y = [[sum(wd[i] * self.Y[i][r][c] for i in range(self.N) if wd[i])
+                  for c in range(n)] for r in range(n)]
+            y = [sum(wd[i] * sum(self.Y[i][r][c] * md[i][c] for c in range(n))
+                     for i in range(self.N) if wd[i]) for r in range(n)]
+            P = _inverse(Y)
+            return [sum(P[r][c] * y[c] for c in range(n)) for r in range(n)]
+
+
 def sensitivity(covs, w, trace: bool, rng, scales=None, draws: int = 2) -> float:
     """How far the exact certificate at w moves when each node moves by a random symmetric
     E_i with |E_i|_F = 4 n eps |P_i|_F, about the backward error of its Cholesky factor in
@@ -253,6 +269,13 @@ def check_ci(r, means, covs, criterion, scales=None, exact=True):
     tol = Decimal(max(1e-9, 64 * n * EPS * np.linalg.cond(covs).max()))
     assert abs(Decimal(r.objective) - f) <= tol * scale, (r.objective, float(f))
     assert Decimal(r.objective) <= best + tol * scale  # never worse than the best node
+    # The mean is P(w) sum_i w_i Y_i m_i at the weights, to the rounding the conditions of
+    # the nodes and of the fused covariance allow, relative to the largest input mean.
+    cond = max(np.linalg.cond(covs).max(), np.linalg.cond(r.cov))
+    err = max(abs(Decimal(float(a)) - b) for a, b in zip(r.mean, ex.mean(r.weights, means),
+                                                          strict=True))
+    top = Decimal(float(np.abs(means).max()))
+    assert err <= Decimal(64 * n * EPS * cond) * top, ("mean", float(err), float(top), cond)
     # "optimal" means the exact certificate is within 1e-10, and the reported gap bounds
     # it, up to how far the input's own rounding moves it (`sensitivity`, computed only
     # where it is needed): below 1e-13 for well-conditioned or diagonal nodes, so there the
