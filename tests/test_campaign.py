@@ -14,6 +14,8 @@ are MBCI with p in [0, 1] and chi down to 1e-3. Each backend fuses them with
     nonfinite, asymmetric, not_pd, off_simplex, objective_vs_cov   (test_fuzz.check_estimate)
     batch_mismatch    a fuse_batch problem differs from fo.fuse by more than 1e-9 relative
     worse_than_best_node, objective_vs_exact, unverified_improvement (item 9)
+    mean_vs_exact     the fused mean off P(w) sum_i w_i Y_i m_i (exact, at the returned
+                      weights) by more than test_fuzz.mean_error's bound
     certificate       status "optimal" with an exact relative certificate above 1e-10
                       beyond what the input's own rounding explains (below)
     gap_understated   the reported gap below the exact one, beyond the same
@@ -54,6 +56,7 @@ from test_fuzz import (
     Exact,
     check_estimate,
     exact_scales,
+    mean_error,
     sensitivity,
 )
 
@@ -174,6 +177,9 @@ def _audit(tally, key, kind, r_b, r_one, means, covs, criterion, scales):
         tally.fail(key, "worse_than_best_node", (r_b.objective, float(best)))
     if not single and not f < best:
         tally.fail(key, "unverified_improvement", (float(f), float(best)))
+    err, bound = mean_error(r_b, means, covs, ex)
+    if err > bound:
+        tally.fail(key, "mean_vs_exact", (float(err), float(bound)))
     rel = float(rel)
     if optimal:
         worst = row["worst_certificate"]

@@ -267,13 +267,8 @@ def check_ci(r, means, covs, criterion, scales=None):
     tol = Decimal(max(1e-9, 64 * n * EPS * np.linalg.cond(covs).max()))
     assert abs(Decimal(r.objective) - f) <= tol * scale, (r.objective, float(f))
     assert Decimal(r.objective) <= best + tol * scale  # never worse than the best node
-    # The mean is P(w) sum_i w_i Y_i m_i at the weights, to the rounding the conditions of
-    # the nodes and of the fused covariance allow, relative to the largest input mean.
-    cond = max(np.linalg.cond(covs).max(), np.linalg.cond(r.cov))
-    err = max(abs(Decimal(float(a)) - b) for a, b in zip(r.mean, ex.mean(r.weights, means),
-                                                          strict=True))
-    top = Decimal(float(np.abs(means).max()))
-    assert err <= Decimal(64 * n * EPS * cond) * top, ("mean", float(err), float(top), cond)
+    err, bound = mean_error(r, means, covs, ex)
+    assert err <= bound, ("mean", float(err), float(bound))
     # "optimal" means the exact certificate is within 1e-10, and the reported gap bounds
     # it, up to how far the input's own rounding moves it (`sensitivity`, computed only
     # where it is needed): below 1e-13 for well-conditioned or diagonal nodes, so there the
@@ -289,6 +284,17 @@ def check_ci(r, means, covs, criterion, scales=None):
             moved = max(moved, sensitivity(covs, r.weights, trace, rng, scales, 20))
         assert over <= 10 * moved, ("certificate beyond the input's sensitivity", rel,
                                     rel_reported, moved)
+
+
+def mean_error(r, means, covs, ex: Exact) -> tuple[Decimal, Decimal]:
+    """(error, bound) of r.mean against P(w) sum_i w_i Y_i m_i at r's weights in `ex`'s
+    arithmetic: the bound is the rounding the conditions of the nodes and of the fused
+    covariance allow, 64 n eps cond, relative to the largest input mean."""
+    cond = max(np.linalg.cond(covs).max(), np.linalg.cond(r.cov))
+    err = max(abs(Decimal(float(a)) - b) for a, b in zip(r.mean, ex.mean(r.weights, means),
+                                                          strict=True))
+    top = Decimal(float(np.abs(means).max()))
+    return err, Decimal(64 * covs.shape[1] * EPS * cond) * top
 
 
 def check_rule(r, means, covs, method, criterion):

@@ -16,6 +16,34 @@ def table1(**overrides):
     return cfg, cfg.filter_model(), m0, P0
 
 
+def test_one_measurement_in_clutter_is_the_target_with_its_posterior_probability():
+    """One association step from N identical particles: each takes y as the target with
+    probability (1 - pi) L / ((1 - pi) L + pi / V), L = N(y; H m, H P H^T + R) (scipy), and
+    then holds the Kalman update of (m, P) (the dense formulas here), else (m, P) as they
+    were; every weight grows by log((1 - pi) L + pi / V)."""
+    from scipy.stats import binomtest, multivariate_normal
+
+    cfg, model, m0, P0 = table1()
+    y = model.H @ m0 + np.array([0.4, -0.3])
+    S = model.H @ P0 @ model.H.T + model.R
+    L = multivariate_normal(model.H @ m0, S).pdf(y)
+    N, pi = 4000, 0.3
+    V = 1.5 * pi / ((1 - pi) * L)  # clutter a little less likely than the target
+    params = rbpf.RBPFParams(model, np.log(pi / V), np.log(1 - pi), 0.0)
+    m, P, logw = np.tile(m0, (N, 1)), np.tile(P0, (N, 1, 1)), np.full(N, -np.log(N))
+    p_target = (1 - pi) * L / ((1 - pi) * L + pi / V)
+    m1, P1, logw1 = rbpf.associate_step(m, P, logw, y, params, np.random.default_rng(4))
+    K = P0 @ model.H.T @ np.linalg.inv(S)
+    m_upd, P_upd = m0 + K @ (y - model.H @ m0), P0 - K @ S @ K.T
+    took = ~np.all(m1 == m0, axis=1)
+    assert 0.2 < p_target < 0.8 and binomtest(int(took.sum()), N, p_target).pvalue > 1e-3
+    np.testing.assert_allclose(m1[took], np.broadcast_to(m_upd, m1[took].shape), rtol=1e-12)
+    np.testing.assert_allclose(P1[took], np.broadcast_to(P_upd, P1[took].shape), rtol=1e-9,
+                               atol=1e-12 * np.abs(P_upd).max())
+    np.testing.assert_array_equal(P1[~took], P[~took])
+    np.testing.assert_allclose(logw1 - logw, np.log((1 - pi) * L + pi / V), rtol=1e-12)
+
+
 def test_no_clutter_and_zero_clutter_prior_equals_kalman():
     cfg, model, m0, P0 = table1(clutter_fraction=0.0, n_steps=300)
     data = scenarios.simulate_table1(cfg, np.random.default_rng(1))
