@@ -22,7 +22,8 @@ class Status(StrEnum):
     OPTIMAL_INACCURATE: the best weights found, whose certificate (reported in `gap`)
         falls short of that tolerance.
     CLOSED_FORM: a rule without a weight optimisation (naive, known-cross, fast-ci, ifci,
-        ei) or a single node: computed by its formula; `gap` is 0.
+        ei), for any number of nodes: computed by its formula; `gap` is 0. (A single node
+        through ci, bci or mbci is OPTIMAL: its weight problem is solved by w = 1, gap 0.)
 
     A solver that fails raises FusionSolverError instead, whose `status` is a string
     saying why ("infeasible", "unbounded", "user_limit", "solver_error", "memory_limit",

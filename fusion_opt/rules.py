@@ -188,6 +188,8 @@ def compiled(method, means, covs, F, k, trace: bool, cross=None, batch: bool = F
         raise overflow_error(mean, cov, obj, batch, int(where[0]))
     if code != OK:
         raise _numerical_error(method, code, f"problem {where[0]}: " if batch else "")
+    if N == 1:  # its checks passed: the node itself (fuzz M4: the formula's rounding of it)
+        _single_node(means, covs, F, k, trace, W, shares, mean, cov, obj)
     status = Status.OPTIMAL if method == "ici" else Status.CLOSED_FORM
     if method in ("naive", "known-cross", "ei"):
         return shares, mean, cov, obj, status, GAIN_SHARES
@@ -305,6 +307,21 @@ def gain_mean(means, K, shares, mean):
             for c in range(n):
                 t += K[i, a, c] * (np.ldexp(means[i, c], -e) - np.ldexp(means[r, c], -e))
         mean[a] = _shifted(means[r, a], t, e, e)
+
+
+def _single_node(means, covs, F, k, trace: bool, W, shares, mean, cov, obj) -> None:
+    """One node (N = 1), whose gain is I under every rule: weight and share 1, its mean and
+    its covariance exactly as BCI's single node returns them (symmetrised, `scaled`), the
+    criterion there (log det from its factor F = C^-1, C C^T = P 2^-k)."""
+    W[:], shares[:] = 1.0, 1.0
+    mean[:] = means[:, 0]
+    n = means.shape[2]
+    for b in range(means.shape[0]):
+        scaled(covs[b, 0], 1.0, 0, cov[b])
+    if trace:
+        obj[:] = np.trace(cov, axis1=1, axis2=2)
+    else:
+        obj[:] = -2.0 * np.log(np.diagonal(F[:, 0], axis1=1, axis2=2)).sum(axis=1) + n * k * _LN2
 
 
 def _numerical_error(method, code, problem: str) -> FusionSolverError:

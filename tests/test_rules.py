@@ -155,6 +155,39 @@ def test_hand_computed_fast_ci_and_ifci():
 
 # --- the contract -----------------------------------------------------------------------
 
+@pytest.mark.parametrize("criterion", ["trace", "logdet"])
+def test_a_single_node_is_returned_as_it_is_by_every_rule(criterion):
+    """Fuzz M4: with N = 1 every gain is I, so each rule (and BCI) returns the node: its
+    mean and symmetrised covariance exactly, weight 1 and the criterion there (log det by
+    numpy's slogdet, to the rounding condition 1e10 allows), where naive, fast-ci and ifci
+    were 8e-11 off in the mean at condition 1e10 and known-cross's share was 1.00000006.
+    Statuses as fo.Status says: CLOSED_FORM for a rule, OPTIMAL for BCI and MBCI (fuzz
+    M3), in fuse and fuse_batch alike."""
+    rng = np.random.default_rng(1)
+    Q = np.linalg.qr(rng.standard_normal((4, 4)))[0]
+    m = np.array([100.0, -50.0, 20.0, 3.0])
+    for scale in (1.0, 1e300, 1e-300):
+        P = (Q * np.array([1.0, 1e-3, 1e-6, 1e-10])) @ Q.T * scale
+        sym = 0.5 * P + 0.5 * P.T
+        f = np.trace(sym) if criterion == "trace" else np.linalg.slogdet(sym / scale)[1] + \
+            4 * np.log(scale)
+        for method in ("bci", "mbci", "naive", "fast-ci", "ifci", "known-cross"):
+            args = {"cross": P[None, None]} if method == "known-cross" else \
+                {"p_detect": 1.0, "chi": 1.0} if method == "mbci" else {}
+            status = Status.OPTIMAL if method in ("bci", "mbci") else Status.CLOSED_FORM
+            r = fo.fuse(m[None], P[None], method, criterion, **args)
+            rb = fo.fuse_batch(m[None, None], P[None, None], method, criterion,
+                               **{k: v[None] if k == "cross" else v for k, v in args.items()})
+            for w, mean, cov, obj, st in ((r.weights, r.mean, r.cov, r.objective, r.status),
+                                          (rb.weights[0], rb.mean[0], rb.cov[0],
+                                           rb.objective[0], rb.status[0])):
+                assert w.tolist() == [1.0] and st == status, (method, w, st)
+                np.testing.assert_array_equal(mean, m)
+                np.testing.assert_array_equal(cov, sym)
+                # log det to the input's own rounding, n eps cond (1e10 here)
+                assert obj == pytest.approx(f, rel=1e-13, abs=16 * 4 * 2.2e-16 * 1e10)
+
+
 def test_tables_name_every_rule():
     assert set(RULES) == {"naive", "known-cross", "fast-ci", "ifci", "ici", "ei"}
     assert RULE_ARGS == {name: frozenset({"cross"} if name == "known-cross" else ())
