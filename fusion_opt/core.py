@@ -227,10 +227,8 @@ def _detection(req, B, N, batch):
     if req.method != "mbci":
         return _unit_scales(B, N)
     a = req.args
-    q, E = detection_split(a["p_detect"], a.get("chi"), N, growth=a.get("growth"))
-    if q.shape != (N,) and not (batch and q.shape == (B, N)):
-        want = f"a scalar, ({N},) or ({B}, {N})" if batch else f"a scalar or ({N},)"
-        raise FusionInputError(f"p_detect and chi (or growth) must be {want}, got {q.shape}")
+    q, E = detection_split(a["p_detect"], a.get("chi"), N, growth=a.get("growth"),
+                           leads=((), (B,)) if batch else ((),))
     # fresh arrays: (B, N) as they are, else broadcast to it
     q, E = (_read_only(x.reshape(B, N) if x.size == B * N else np.broadcast_to(x, (B, N)).copy())
             for x in (q, E))

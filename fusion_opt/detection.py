@@ -20,6 +20,7 @@ import numbers
 
 import numpy as np
 
+from .limits import fits
 from .linalg import jit
 from .results import FusionInputError
 from .validation import check_detection, finite_array, real_array
@@ -45,10 +46,13 @@ def detection_scales(p_detect, chi=None, n_nodes: int | None = None, *,
     return np.ldexp(q, E)
 
 
-def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=None):
+def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=None,
+                    leads=None):
     """(q, E), each (..., N), with s = q 2^E exactly, q in [1, 2), E int64, for p_detect and
     chi (or growth = 1 / chi), each a scalar, (N,) or (..., N) with leading batch axes;
-    n_nodes fixes N when both are scalars (default 1).
+    n_nodes fixes N when both are scalars (default 1). leads: the leading shapes the caller
+    takes (a tuple of tuples; None: any), any other refused before an array is made (fuzz
+    M2: p_detect of 3e7 rows for one problem took 1.4 GB before its refusal).
 
     The scales are computed and checked by one compiled call (`_split`): through numpy's
     small-array calls they took 44 us at N = 3, twice a whole fusion. Wrong shapes and
@@ -59,6 +63,13 @@ def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=No
     N, lead = _layout(p, (name, v), n_nodes)
     if lead is None:
         _refuse(p_detect, chi, n_nodes, growth)
+    if leads is not None and lead not in leads:
+        want = ["a scalar", f"({N},)", *(str((*shape, N)) for shape in leads if shape)]
+        want = f"{', '.join(want[:-1])} or {want[-1]}"
+        raise FusionInputError(f"p_detect and {name} must be {want}, got {(*lead, N)}")
+    # q, E and the compiled call's copies of p and v: 4 numbers a scale (fuzz M2: a
+    # (1e5, 1e4) view of p_detect ran out of memory in detection_scales)
+    fits(f"p_detect and {name} of shape {(*lead, N)}", 32.0 * math.prod(lead) * N)
     q, E = np.empty((*lead, N)), np.empty((*lead, N), dtype=np.int64)
     code = _split(_rows(p, lead, N), _rows(v, lead, N), name == "growth", q.reshape(-1, N),
                   E.reshape(-1, N))

@@ -86,6 +86,7 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
     if covs.ndim != 3:
         raise FusionInputError(f"covs must have shape (N, n, n), got {covs.shape}")
     req = core.request("bci", criterion, None, {})
+    core.check_memory(req, covs.shape[-1], covs.shape[0])  # before allocating (fuzz M1)
     means, covs = core.arrays(np.zeros(covs.shape[:-1]), covs, False)
     w = _simplex_weights(weights, covs.shape[1])
     N = covs.shape[1]

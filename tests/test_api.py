@@ -327,6 +327,48 @@ def test_known_cross_beyond_memory_is_refused_before_its_joint_is_made(monkeypat
     np.testing.assert_allclose(r.cov, np.eye(n) / N, rtol=1e-14)
 
 
+def _peak_bytes(call) -> int:
+    """The peak of Python-tracked allocations (numpy's included) while call() runs."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        call()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+def test_optimality_gap_and_detection_shapes_are_refused_before_allocating(monkeypatch):
+    """Fuzz M1: optimality_gap allocated 668 MiB for 3e6 nodes where fo.bci refuses them
+    by fusion_opt.limits; M2: p_detect of 3e7 rows for one problem (a broadcast view: no
+    memory) took 1.4 GB and 5-10 s before its shape was refused, and a (1e5, 1e4) view ran
+    detection_scales out of memory. Each is refused now with under 1 MB allocated; within
+    the limits optimality_gap still answers (uniform weights on identical nodes: gap 0)."""
+    monkeypatch.setattr(fo.limits, "working_memory", 2**28)
+    N, E = 3_000_000, np.eye(2)
+    covs, w = np.broadcast_to(E, (N, 2, 2)), np.broadcast_to(1.0 / N, (N,))
+
+    def refused(call, error, match):
+        def run():
+            with pytest.raises(error, match=match):
+                call()
+        assert _peak_bytes(run) < 2**20
+
+    refused(lambda: fo.optimality_gap(covs, w), fo.FusionSolverError,
+            r"memory_limit.*N = 3000000.*working_memory")
+    p = np.broadcast_to(0.5, (30_000_000, 2))
+    refused(lambda: fo.fuse_batch(np.zeros((1, 2, 2)), np.array([[E, E]]), "mbci",
+                                  p_detect=p, chi=0.5), fo.FusionInputError,
+            r"p_detect and chi must be a scalar, \(2,\) or \(1, 2\), got \(30000000, 2\)")
+    refused(lambda: fo.mbci(np.zeros((2, 2)), np.array([E, E]), p, chi=0.5),
+            fo.FusionInputError, r"must be a scalar or \(2,\), got \(30000000, 2\)")
+    refused(lambda: fo.detection_scales(np.broadcast_to(0.5, (10**5, 10**4)), 0.5),
+            fo.FusionInputError, r"shape \(100000, 10000\).*array_memory")
+    assert fo.optimality_gap(covs[:1000], w[:1000] * 3000) == 0.0
+
+
 def test_an_overflow_names_the_problem_and_what_overflowed():
     """Regression: "the fused estimate overflows" for a batch, without the problem, where
     only the trace of 1e308 I (the objective) overflows."""
