@@ -1,6 +1,7 @@
 """Metrics on hand-computed cases and against brute force."""
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -199,6 +200,55 @@ def test_metrics_at_the_ends_of_float64_by_hand():
     (lambda: metrics.anees_bounds(10**300, 10**300), "below 1e300")])
 def test_metrics_refuse_what_float64_cannot_give(call, match):
     """Regression: each returned NaN, inf, a negative NEES or a LinAlgError."""
+    with pytest.raises(FusionInputError, match=match):
+        call()
+
+
+def _brute_ospa_gospa(X, Y, c, p):
+    """OSPA and GOSPA (alpha = 2) of equal-size sets by every permutation, each sum of
+    d^p taken in units of its own largest distance (math.hypot's distances: no square
+    over- or underflows), so that no term that matters underflows at any p."""
+    k = len(X)
+    D = [[min(math.hypot(*(x - y)), c) for y in Y] for x in X]
+    best = np.inf  # (sum_i d_i^p)^(1/p) of the best permutation
+    for perm in itertools.permutations(range(k)):
+        d = [D[i][j] for i, j in enumerate(perm)]
+        top = max(d)
+        best = min(best, top * sum((v / top) ** p for v in d) ** (1 / p) if top > 0 else 0.0)
+    return best * k ** (-1 / p), best
+
+
+@pytest.mark.parametrize("scale", [1e-170, 1e-100, 1.0, 1e150, 1e200])
+@pytest.mark.parametrize("p", [1.0, 2.0, 400.0, 2000.0])
+def test_ospa_and_gospa_at_any_scale_and_order_match_brute_force(scale, p):
+    """Fuzz N1: distances of 2e200 came back as c (the squares overflowed) and of 2e-170
+    as 0; N2: at p = 400 every assigned term (d / u)^p underflowed, u the largest of all
+    distances, and OSPA of two pairs 0.1 apart was 0. Against every permutation."""
+    rng = np.random.default_rng([int(p), int(abs(np.log10(scale)))])
+    for _ in range(5):
+        X = rng.normal(0, 3, (4, 2)) * scale
+        Y = X + rng.normal(0, 0.5, (4, 2)) * scale
+        ospa, gospa = _brute_ospa_gospa(X, Y, 1e300, p)
+        assert metrics.ospa(X, Y, 1e300, p) == pytest.approx(ospa, rel=1e-12)
+        assert metrics.gospa(X, Y, 1e300, p) == pytest.approx(gospa, rel=1e-12)
+    pairs = metrics.match([[1e200, 0.0]], [[-1e200, 0.0]], 1e300)
+    assert [a.tolist() for a in pairs] == [[0], [0]]
+
+
+@pytest.mark.parametrize("call,match", [
+    (lambda: metrics.gospa([[0.0, 0.0], [1.0, 1.0]], np.zeros((0, 2)), 1e308, 2, 0.5),
+     "GOSPA overflows"),
+    (lambda: metrics.gospa([[0.0, 0.0]], np.zeros((0, 2)), 1e10, 1, 1e-300),
+     "GOSPA overflows"),
+    (lambda: metrics.spectral_norms(np.full((1, 2, 2), 1e308)),
+     r"spectral norm of covs\[0\] overflows"),
+    (lambda: metrics.mncm(np.full((1, 2, 2), 1e308)), r"spectral norm of covs\[0\] overflows"),
+    (lambda: metrics.cardinality_error([1e308], [1.0]), "whole numbers from 0 to 2\\^53"),
+    (lambda: metrics.cardinality_error([1.5], [2]), r"n_estimated must be counts.*got 1\.5"),
+    (lambda: metrics.cardinality_error([1], [-1]), r"n_true must be counts.*got -1")])
+def test_metrics_refuse_an_overflow_or_a_count_that_is_none(call, match):
+    """Fuzz N3-N5: inf from GOSPA and the spectral norms, NaN from MNCM, inf and 1.5
+    targets from cardinality_error."""
     with pytest.raises(FusionInputError, match=match):
         call()
 

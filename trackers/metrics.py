@@ -115,7 +115,12 @@ def _cov_block(covs, components):
 def spectral_norms(covs, components=None) -> np.ndarray:
     """(T,) spectral norms ||P_k||_2 of covariances (T, n, n), in one batched call;
     ``components`` takes the block of those state indices (e.g. models.POSITION)."""
-    return np.linalg.norm(_cov_block(covs, components), ord=2, axis=(1, 2))
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(_cov_block(covs, components), ord=2, axis=(1, 2))
+    if not np.isfinite(norms).all():  # fuzz N4: inf, and a NaN MNCM, at 1e308 entries
+        k = int(np.flatnonzero(~np.isfinite(norms))[0])
+        raise FusionInputError(f"the spectral norm of covs[{k}] overflows float64")
+    return norms
 
 
 def mncm(covs, components=None) -> float:
@@ -199,24 +204,56 @@ def _assignment_cost(X, Y, c, p) -> tuple[float, float]:
     """(u, S): S = min over assignments of sum (d_c(x, y) / u)^p over the min(m, k) assigned
     pairs, in units u chosen so that no c, p or distance reaches beyond float64: u = c when
     the sets differ in size (a term of 1 per unassigned point then dominates), else the
-    largest cut distance, so that the largest term is 1 and none underflows that matters
-    ((d / c)^p underflowed to 0 for c = 1e300, fuzz I5). u = 0 where every distance is."""
+    largest distance of the optimal assignment, so that its largest term is 1 and none
+    that matters underflows ((d / c)^p underflowed to 0 for c = 1e300, fuzz I5; with u the
+    largest of all distances, every assigned term did at p = 400 and OSPA was 0, fuzz N2).
+    u = 0 where every distance is."""
     m, k = X.shape[0], Y.shape[0]
     if m == 0 or k == 0:
         return c, 0.0
     D = np.minimum(_distances(X, Y), c)
-    u = c if m != k else float(D.max())
-    if u == 0.0:
-        return u, 0.0
-    C = (D / u) ** p
-    r, s = linear_sum_assignment(C)
+    if m != k:
+        (r, s), C = _assigned(D, c, p, k)
+        return c, float(C[r, s].sum())
+    u = float(D.max())
+    for _ in range(_REFINE):
+        if u == 0.0:
+            return u, 0.0
+        (r, s), C = _assigned(D, u, p, k)
+        top = float(D[r, s].max())
+        if top >= u:
+            break
+        u = top  # its terms underflowed in units of u: again in units of its largest
     return u, float(C[r, s].sum())
 
 
+# Units `_assignment_cost` tries at most: each try divides u by the largest ratio of the
+# distances whose p-th powers vanish beside 1 (at least 2^(1074 / p)); one or two suffice.
+_REFINE = 64
+
+
+def _assigned(D, u, p, k):
+    """The optimal assignment (rows, columns) of the costs C = (D / u)^p and C, whose
+    entries above 2 k are cut to 2 k: an assignment of entries <= 1 costs at most k, so no
+    entry above that is in an optimal one where such an assignment exists (in units of a
+    distance of one, it does), and none overflows."""
+    with np.errstate(over="ignore"):
+        C = np.minimum((D / u) ** p, 2.0 * k)
+    return linear_sum_assignment(C), C
+
+
 def _distances(X, Y) -> np.ndarray:
-    """(m, k) Euclidean distances, inf where one overflows (beyond any cut-off)."""
+    """(m, k) Euclidean distances, each in units of its largest component difference, so
+    that no square over- or underflows (np.linalg.norm's squares of 1e200 were inf, cut to
+    c, and of 1e-170 were 0: fuzz N1); inf where a difference overflows (beyond any
+    cut-off)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        return np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
+        diff = np.abs(X[:, None, :] - Y[None, :, :])
+        top = diff.max(axis=-1)
+        unit = np.where((top > 0.0) & (top < np.inf), top, 1.0)
+        d = top * np.sqrt(np.einsum("ijk,ijk->ij", diff / unit[..., None],
+                                    diff / unit[..., None]))
+    return np.where(top < np.inf, d, np.inf)
 
 
 def ospa(X, Y, c: float, p: float) -> float:
@@ -249,7 +286,12 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
         raise FusionInputError(f"alpha must be in (0, 2], got {alpha}")
     m, k = sorted((X.shape[0], Y.shape[0]))
     u, cost = _assignment_cost(X, Y, c, p)  # u = c where k > m
-    return float(u * (cost + (k - m) / alpha) ** (1.0 / p))
+    with np.errstate(over="ignore"):
+        value = float(u * (cost + (k - m) / alpha) ** (1.0 / p))
+    if not np.isfinite(value):  # fuzz N3: inf for c = 1e308 and two missed targets
+        raise FusionInputError(f"GOSPA overflows float64 (c = {c:g}, alpha = {alpha:g}, "
+                               f"{k - m} unassigned points)")
+    return value
 
 
 def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -299,4 +341,9 @@ def cardinality_error(n_estimated, n_true) -> np.ndarray:
     if a.shape != b.shape:
         raise FusionInputError(f"n_estimated {a.shape} and n_true {b.shape} must be equal 1-D "
                                "shapes")
+    for name, x in (("n_estimated", a), ("n_true", b)):  # fuzz N5: 1.5 targets passed
+        bad = (x < 0) | (x != np.round(x)) | (x >= 2.0**53)
+        if bad.any():
+            raise FusionInputError(f"{name} must be counts of targets (whole numbers from 0 "
+                                   f"to 2^53), got {x[bad][0].item()!r}")
     return a - b
