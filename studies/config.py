@@ -29,7 +29,7 @@ import numpy as np
 
 import fusion_opt as fo
 from fusion_opt.limits import fits as limits_fits
-from fusion_opt.validation import finite_real
+from fusion_opt.validation import finite_real, short_repr
 
 
 class ConfigError(ValueError):
@@ -74,7 +74,27 @@ def _user_file(path, defaults: dict) -> dict:
     if unknown:
         raise ConfigError(f"--config {path}: unknown field(s) {unknown}; "
                           f"known: {sorted(defaults)}{renamed_hint(unknown, defaults)}")
-    return user
+    return _wide_ints_as_floats(user, "")
+
+
+def _wide_ints_as_floats(value, where: str):
+    """value with every integer beyond int64 (TOML has no bound) as a float: numpy took
+    2^70 as an object and a study's run ended in a TypeError traceback (fuzz N7). A field
+    that must be an integer then refuses the float by name; one past float64's range is
+    refused here."""
+    if isinstance(value, dict):
+        return {k: _wide_ints_as_floats(v, f"{where}.{k}" if where else k)
+                for k, v in value.items()}
+    if isinstance(value, list):
+        return [_wide_ints_as_floats(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, int) and not isinstance(value, bool) and \
+            not -(2**63) <= value < 2**63:
+        try:
+            return float(value)
+        except OverflowError:
+            raise ConfigError(f"{where} = {short_repr(value)} is beyond float64's "
+                              "range") from None
+    return value
 
 
 RENAMED = {  # an older or library-side name -> the field a configuration uses

@@ -251,6 +251,24 @@ def test_a_config_file_that_is_not_utf8_is_refused_in_one_line(tmp_path, capsys)
     assert not out.exists()
 
 
+def test_integers_past_int64_in_a_config_file_are_floats_or_refused_by_field(tmp_path,
+                                                                            capsys):
+    """Fuzz N7: prior_pos_var = 2^70 (TOML has no integer bound) reached numpy as an object
+    and `run network` ended in a traceback. Past int64 an integer is read as the float it
+    is; a field that must be an integer then refuses it by name, and 10^400 is refused."""
+    path = tmp_path / "big.toml"
+    path.write_text(f"[tracker]\nprior_pos_var = {2**70}\n")
+    config = configs.load("network", quick=True, path=path)
+    assert config["tracker"]["prior_pos_var"] == float(2**70)
+    _module("network").check(config)
+    path.write_text(f"runs = {2**70}\n")
+    err = _refused(capsys, ["run", "table1", "--config", str(path), "--out", str(tmp_path)])
+    assert "runs must be an integer" in err and "got 1.1805916207174113e+21" in err
+    path.write_text(f"[metrics]\ncutoff = {10**400}\n")
+    err = _refused(capsys, ["run", "stonesoup", "--config", str(path), "--out", str(tmp_path)])
+    assert "metrics.cutoff = 10000000... (401 digits) is beyond float64's range" in err
+
+
 @pytest.mark.parametrize("command", ["run", "report"])
 def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, capsys,
                                                                   monkeypatch, command):

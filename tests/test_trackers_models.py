@@ -1,6 +1,7 @@
 """Exact discretisation of the turn model against closed forms and numerical quadrature."""
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -114,6 +115,15 @@ def test_a_step_whose_model_overflows_names_dt():
     the caller never gave."""
     with pytest.raises(FusionInputError, match="dt = 1e[+]300 is too long a step"):
         models.turn_model(0.0, 1.0, 1.0, 1e300)
+    # fuzz N6: |F|_1 dt overflowed at 1e308 and int(inf) raised OverflowError
+    for dt in (1e308, np.finfo(float).max):
+        with pytest.raises(FusionInputError, match="is too long a step"):
+            models.turn_model(0.0, 1.0, 1.0, dt)
+        with pytest.raises(FusionInputError, match="is too long a step"):
+            models.discretize(models.turn_F(0.5), models.turn_L(), np.eye(2), dt)
+    with warnings.catch_warnings():  # fuzz N12: q = 1e308 warned of an overflow
+        warnings.simplefilter("error")
+        assert np.isfinite(models.turn_model(0.0, 1e308, 0.05, 0.025).Q).all()
     with pytest.raises(FusionInputError, match="A must be square with n >= 1"):
         models.LinearGaussian(*(np.zeros((0, 0)),) * 4)
 

@@ -271,3 +271,28 @@ def test_reach_is_accepted_up_to_the_bound_and_refused_past_it():
     cfg = Table1Config(x0=(1e11, -0.2, 1.0, 0.0), n_steps=20)
     data = simulate_table1(cfg, np.random.default_rng(0))
     assert all(np.isfinite(node.values).all() for node in data.nodes)
+
+
+def test_integers_past_int64_and_steps_past_float64_are_handled_by_name():
+    """Fuzz N7: dt or r of 2^70 (a TOML integer) reached numpy as an object (TypeError);
+    N8: dt = 1e-308 made a birth's step t / dt infinite and round() raised OverflowError
+    in the simulators. Now a float field given an int holds it as a float (refused past
+    float64), and a target born beyond the run is simply never alive in it."""
+    cfg = Table1Config(r=2**70)
+    assert cfg.r == float(2**70) and type(cfg.r) is float
+    for make, match in ((lambda: Table1Config(dt=2**70), "dt = 1.18059e[+]21 is too long"),
+                        (lambda: scenarios.Table2Config(dt=2**70), "dt = 1.18059e[+]21"),
+                        (lambda: Table1Config(r=10**400), r"r = 10000000\.\.\. \(401 digits\) "
+                                                          "is beyond float64's range"),
+                        (lambda: scenarios.CrossingConfig(dt=10**400), "dt = 1000")):
+        with pytest.raises(FusionInputError, match=match):
+            make()
+    rng = np.random.default_rng(0)
+    t2 = scenarios.simulate_table2(scenarios.Table2Config(dt=1e-308, n_steps=20), rng)
+    cross = scenarios.simulate_crossing(scenarios.CrossingConfig(dt=1e-308), rng)
+    births = ([tg.birth for tg in scenarios.Table2Config().targets],
+              scenarios.CrossingConfig().targets()[1])
+    for data, born in zip((t2, cross), births, strict=True):
+        # a target born at 0 lives through the run; one born at t > 0 is far past it
+        np.testing.assert_array_equal(data.alive.all(axis=1), np.asarray(born) == 0)
+        np.testing.assert_array_equal(data.alive.any(axis=1), np.asarray(born) == 0)

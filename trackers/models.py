@@ -51,6 +51,16 @@ def position_H() -> np.ndarray:
     return np.eye(2, 4)
 
 
+def _halvings(norm1: float, dt: float) -> int:
+    """The s >= 0 with |F|_1 dt / 2^s <= 1/2, from logs (|F|_1 dt of 1e308 overflowed,
+    and int(inf) raised: fuzz N6); _MAX_HALVINGS + 1 where it is past any count."""
+    if not norm1 > 0.0:
+        return 0
+    with np.errstate(over="ignore"):
+        x = 1.0 + np.log2(norm1) + np.log2(dt)
+    return 0 if x <= 0.0 else int(np.ceil(x)) if x <= _MAX_HALVINGS else _MAX_HALVINGS + 1
+
+
 def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretisation of dx = F x dt + L dw, E[dw dw^T] = Qc dt, over a step dt.
 
@@ -73,13 +83,12 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
                                f"{L.shape}")
     Qc = _checks.psd_covariance("Qc", Qc, L.shape[1])
     dt = _checks.positive("dt", dt)
-    with np.errstate(over="ignore"):
-        s = max(0, int(np.ceil(np.log2(2.0 * np.abs(F).sum(axis=0).max() * dt)))) \
-            if np.abs(F).max() * dt > 0.0 else 0
+    norm1 = float(np.abs(F).sum(axis=0).max())
+    s = _halvings(norm1, dt)
     if s > _MAX_HALVINGS:
-        raise FusionInputError(f"dt = {dt:g} is too long a step for this F: |F|_1 dt "
-                               f"= {np.abs(F).sum(axis=0).max() * dt:.3g} (at most "
-                               f"2^{_MAX_HALVINGS - 1})")
+        product = f"{norm1 * dt:.3g}" if norm1 * dt < np.inf else f"{norm1:.3g} x {dt:.3g}"
+        raise FusionInputError(f"dt = {dt:g} is too long a step for this F: |F|_1 dt = "
+                               f"{product} (at most 2^{_MAX_HALVINGS - 1})")
     h = dt / 2.0**s
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F

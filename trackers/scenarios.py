@@ -16,6 +16,7 @@ Measurements carry their step, time and true origin: the target's id (0, 1, ...)
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt.prepare import MAX_CONDITION
+from fusion_opt.validation import short_repr
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -127,6 +129,21 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
     except FusionInputError as exc:
         raise FusionInputError(f"turn_noise_sd = {noise_sd!r}: the drawn turn rates reach "
                                f"about {worst:.3g} rad/s: {exc}") from None
+
+
+def _float_fields(cfg) -> None:
+    """Each field whose default is a float, given as a Python int, held as that float (a
+    TOML integer of 2^70 reached numpy as an object and raised TypeError: fuzz N7); one
+    past float64's range refused by name."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if isinstance(f.default, float) and isinstance(value, int) and not isinstance(
+                value, bool):
+            try:
+                object.__setattr__(cfg, f.name, float(value))
+            except OverflowError:
+                raise FusionInputError(f"{f.name} = {short_repr(value)} is beyond float64's "
+                                       "range") from None
 
 
 def _check_shared(cfg) -> None:
@@ -248,6 +265,7 @@ class Table1Config:
     resample_threshold: float = 0.25
 
     def __post_init__(self) -> None:
+        _float_fields(self)
         _check_shared(self)
         _checks.positive("r", self.r)
         x0 = _checks.finite_array("x0", self.x0, shape=(4,))
@@ -391,6 +409,7 @@ class Table2Config:
     resample_threshold: float = 0.25
 
     def __post_init__(self) -> None:
+        _float_fields(self)
         _check_shared(self)
         _checks.positive("meas_sd", self.meas_sd)
         # a study's TOML gives targets as tables (dicts) or arrays; store TargetSpecs
@@ -478,10 +497,12 @@ def simulate_table2(config: Table2Config, rng: np.random.Generator) -> MultiTarg
     alive = np.zeros((n_tg, T), dtype=bool)
     grid = np.arange(1, T + 1)  # t_k / dt
     for j, tg in enumerate(config.targets):
-        b, e = round(tg.birth / dt), round(tg.death / dt)
+        b, e = _grid_index(tg.birth, dt), _grid_index(tg.death, dt)
         steps = np.flatnonzero((grid > b) & (grid <= e))
         if steps.size == 0:
             continue
+        _checks.fits(f"targets[{j}]: {grid[steps[-1]] - b} steps from its birth",
+                     8.0 * 8 * (grid[steps[-1]] - b))
         # propagate from the birth time b dt to each alive step's time
         t_prop = dt * np.arange(b + 1, grid[steps[-1]] + 1)
         rates = _turn_rates(t_prop, tg.turn_windows, tg.turn_rate, config.turn_noise_sd,
@@ -550,6 +571,7 @@ class CrossingConfig:
                                        3.0, 0.8, 0.4, 1.2, 0.6)
 
     def __post_init__(self) -> None:
+        _float_fields(self)
         for name in ("dt", "q", "meas_sd", "start_radius", "speed"):
             _checks.positive(name, getattr(self, name))
         for name in ("n_steps", "n_targets"):
@@ -613,6 +635,14 @@ def simulate_crossing(config: CrossingConfig, rng: np.random.Generator) -> Multi
     return MultiTargetData(times, truth, alive, nodes)
 
 
+def _grid_index(t: float, dt: float) -> int:
+    """round(t / dt), the step of time t, within +-2^62 (t / dt overflowed at dt = 1e-308
+    and round(inf) raised OverflowError: fuzz N8; a step that far is never in a run)."""
+    with np.errstate(over="ignore"):
+        x = t / dt
+    return round(min(max(x, -(2.0**62)), 2.0**62))
+
+
 def _crossing_truth(config: CrossingConfig) -> tuple[np.ndarray, np.ndarray]:
     """truth (J, T, 4), NaN where not alive, and alive (J, T): step k holds a target born
     at b and dying at e iff b < t_k <= e (on the grid)."""
@@ -620,7 +650,7 @@ def _crossing_truth(config: CrossingConfig) -> tuple[np.ndarray, np.ndarray]:
     dt, T = config.dt, config.n_steps
     truth = np.full((len(x0), T, 4), np.nan)
     for j in range(len(x0)):
-        b, e = round(births[j] / dt), min(round(deaths[j] / dt), T)
+        b, e = _grid_index(births[j], dt), min(_grid_index(deaths[j], dt), T)
         if e > b:
             truth[j, b:e] = _propagate(x0[j], np.full(e - b, rates[j]), dt, config.q, False,
                                        None)
