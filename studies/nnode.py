@@ -116,10 +116,10 @@ def check(config: dict) -> None:
     if dyn["burn_in"] >= dyn["steps"]:
         raise configs.ConfigError(f"dynamic.burn_in must be below dynamic.steps "
                                   f"({dyn['steps']}), got {dyn['burn_in']}")
-    _check_dynamic_model(dyn)
-    for i, N in enumerate(dyn["N"]):
+    for i, N in enumerate(dyn["N"]):  # before the model check, which runs every step
         _dynamic_fits(f"dynamic.N[{i}] = {N} with dynamic.steps = {dyn['steps']}", dyn, N,
-                      backend)
+                      backend)  # (10^7 steps ran it for minutes, gigabytes: fuzz N9)
+    _check_dynamic_model(dyn)
     configs.backend("backend", backend, nodes=max(nodes + list(dyn["N"])))
     _check_scaling(config["scaling"])
 

@@ -249,9 +249,10 @@ def _check_track_covariances(sc: Scenario) -> None:
     for s, sd in enumerate(sc.noise_sd):
         R = np.diag(np.square(sd))
         P, covs = H.T @ R @ H + np.diag([0.0, 1.0, 0.0, 1.0]), []
-        for k in range(sc.min_points - 1 + sc.max_misses - 1):
+        updates = min(sc.min_points - 1, sc.steps)  # a run has no more scans than steps
+        for k in range(updates + min(sc.max_misses - 1, sc.steps)):  # (10^7: fuzz N9)
             P = kalman.predict(np.zeros(NDIM), P, A, Q)[1]
-            if k < sc.min_points - 1:
+            if k < updates:
                 P = kalman.update(np.zeros(NDIM), P, np.zeros(2), H, R)[1]
             covs.append(P)
         configs.fusable(f"scenario.q = {sc.q:.3g}, dt = {sc.dt:.3g}, noise_sd[{s}] = "

@@ -269,6 +269,20 @@ def test_integers_past_int64_in_a_config_file_are_floats_or_refused_by_field(tmp
     assert "metrics.cutoff = 10000000... (401 digits) is beyond float64's range" in err
 
 
+def test_a_config_check_runs_no_more_steps_than_its_study(tmp_path):
+    """Fuzz N9: nnode's check ran the dynamic model over dynamic.steps = 10^7 before the
+    memory limit could refuse them (minutes, gigabytes), and stonesoup's predicted a track
+    over max_misses = 10^7 scans of a 60-step run. The limit now comes first, and the track
+    is followed over at most the run's steps (identical for any count past them)."""
+    path = tmp_path / "steps.toml"
+    path.write_text("[dynamic]\nsteps = 10000000\n")
+    with pytest.raises(configs.ConfigError, match=r"dynamic.steps = 10000000: about .* GiB"):
+        _module("nnode").check(configs.load("nnode", quick=True, path=path))
+    for field in ("max_misses", "min_points"):
+        path.write_text(f"[scenario]\n{field} = 10000000\n")
+        _module("stonesoup").check(configs.load("stonesoup", quick=True, path=path))
+
+
 @pytest.mark.parametrize("command", ["run", "report"])
 def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, capsys,
                                                                   monkeypatch, command):
