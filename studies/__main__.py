@@ -156,6 +156,9 @@ def _run(args) -> None:
 
 def _run_study(name: str, config: dict, args) -> None:
     module, out = _module(name), args.out / name
+    if out.exists() and not out.is_dir():  # "[Errno 17] File exists" said less (fuzz N11)
+        raise configs.ConfigError(f"{out} is a file, not the study's folder: move it away or "
+                                  "choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if not _monte_carlo(module):

@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import sqlite3
+import stat
 from pathlib import Path
 from urllib.parse import quote
 
@@ -99,6 +100,7 @@ class Store:
     def __init__(self, path: Path, config: dict | None = None, *, write: bool = True):
         self.path = Path(path)
         self._db = self._lock = None
+        _plain_files(self.path)
         if config is not None:  # to run: no other run may be using the store
             self._lock = _lock(self.path, create=write)
             if not write:
@@ -310,6 +312,25 @@ class Store:
             self._db.close()
             self._db = None
         self._unlock()
+
+
+def _plain_files(path: Path) -> None:
+    """StoreError unless the store's folder is a folder (where it exists) and the store and
+    its lock are regular files (where they exist): a FIFO in place of the store blocked
+    `report` and `run` in open(), deaf to Ctrl-C (fuzz N10), and a file in place of the
+    folder or a folder in place of the lock gave only "[Errno 17] File exists" or
+    "[Errno 21] Is a directory" (N11)."""
+    folder = path.parent
+    if folder.exists() and not folder.is_dir():
+        raise StoreError(f"{folder} is a file, not the study's folder: move it away or "
+                         "choose another --out")
+    for p in (path, path.with_name(path.name + ".lock")):
+        if p.exists() and not stat.S_ISREG(p.stat().st_mode):
+            kind = "a folder" if p.is_dir() else "not a regular file (a pipe, socket or " \
+                "device)"
+            raise StoreError(f"{p} is {kind}, where the study's store keeps "
+                             f"{'its lock' if p != path else 'its runs'}: move it away or "
+                             "choose another --out")
 
 
 def _lock(path: Path, create: bool) -> int | None:

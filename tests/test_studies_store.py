@@ -269,3 +269,27 @@ def test_a_measurement_file_its_run_did_not_record_is_refused(measured, tmp_path
         con.execute("DELETE FROM meta WHERE key = 'files'")
     assert "throughput.json was not written by the run recorded in" in \
         _report_refused(out, "network", capsys)
+
+
+@pytest.mark.parametrize("make", ["fifo", "lock folder", "folder file"])
+def test_a_store_that_is_no_file_is_refused_at_once(tmp_path, capsys, make):
+    """Fuzz N10: a FIFO in place of runs.sqlite blocked `report` and `run` in open(), deaf
+    to Ctrl-C and SIGTERM; N11: a folder in place of the lock, or a file in place of the
+    study's folder, gave only "[Errno 21] Is a directory" or "[Errno 17] File exists"."""
+    import os
+
+    folder = tmp_path / "table1"
+    if make == "folder file":
+        folder.write_text("x")
+        said = f"{folder} is a file, not the study's folder"
+    else:
+        folder.mkdir()
+        if make == "fifo":
+            os.mkfifo(folder / "runs.sqlite")
+            said = "runs.sqlite is not a regular file (a pipe"
+        else:
+            (folder / "runs.sqlite.lock").mkdir()
+            said = "runs.sqlite.lock is a folder, where the study's store keeps its lock"
+    for command in (["report", "table1"], ["run", "table1", "--runs", "2", "--quiet"]):
+        assert main([*command, "--out", str(tmp_path)]) != 0
+        assert said in capsys.readouterr().err

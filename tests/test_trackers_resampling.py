@@ -109,3 +109,18 @@ def test_resampling_refuses_a_bad_generator_and_threshold():
         resampling.end_of_step(np.array([0.0, -30.0]), 2.0, 0)
     with pytest.raises(FusionInputError, match="threshold must be a particle count"):
         resampling.end_of_step(np.zeros(3), np.nan, np.random.default_rng(0))
+
+
+def test_logsumexp_agrees_with_scipy_at_the_edges():
+    """Fuzz N12: no entries raised numpy's bare "zero-size array" ValueError; now as scipy:
+    -inf for an empty sum, inf and NaN where an entry is, and random arrays to rounding."""
+    from scipy.special import logsumexp as reference
+
+    from trackers.resampling import logsumexp
+
+    rng = np.random.default_rng(3)
+    cases = [([], None), (np.zeros((0, 3)), 0), (np.zeros((0, 3)), 1), (np.zeros((2, 0)), 1),
+             ([np.nan, 0.0], None), ([np.inf, 1.0], None), ([-np.inf, -np.inf], None),
+             (rng.normal(0, 300, (4, 5)), 0), (rng.normal(0, 300, (4, 5)), None)]
+    for a, axis in cases:
+        np.testing.assert_allclose(logsumexp(a, axis), reference(a, axis=axis), rtol=1e-15)

@@ -21,13 +21,17 @@ from trackers import _checks
 
 
 def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
-    """log(sum(exp(a))) along ``axis``, stable for large |a| and exact for -inf entries.
+    """log(sum(exp(a))) along ``axis``, stable for large |a| and exact for -inf entries;
+    as scipy.special.logsumexp: -inf over no entries (an empty sum is 0), inf where an entry
+    is inf, NaN where one is (the filters check their weights after each step).
 
     A plain-numpy version: scipy.special.logsumexp's generic array handling costs more than
     the arithmetic for the small arrays of a particle filter step (measured 60% of the
     RBPF's run time).
     """
     a = np.asarray(a, dtype=float)
+    if a.size == 0:  # numpy's max of nothing raised a bare ValueError (fuzz N12)
+        return np.full(np.sum(a, axis=axis).shape, -np.inf)[()]
     peak = a.max(axis=axis, keepdims=True)
     peak[~np.isfinite(peak)] = 0.0  # all -inf: the result is -inf
     with np.errstate(divide="ignore", over="ignore"):  # a - peak = -inf: a term of 0
