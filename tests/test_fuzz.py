@@ -336,10 +336,12 @@ def _draw(rng, kinds=("random", "ill-conditioned", "diagonal", "near-identical",
 # --- the CI family ----------------------------------------------------------------------
 
 @pytest.mark.parametrize("criterion", CRITERIA)
-def test_ci_family_on_extreme_inputs(criterion):
-    """bci with newton (closed-form and ci too for N = 2), checked against `Exact`."""
-    rng = np.random.default_rng([90, len(criterion)])
-    for _ in range(200):
+@pytest.mark.parametrize("count", [60, pytest.param(200, marks=pytest.mark.slow)])
+def test_ci_family_on_extreme_inputs(criterion, count):
+    """bci with newton (closed-form and ci too for N = 2), checked against `Exact`: 60
+    problems per criterion in the default run, 200 more in the slow one."""
+    rng = np.random.default_rng([90, len(criterion), count])
+    for _ in range(count):
         kind, N, n, means, covs = _draw(rng)
         check_ci(fo.bci(means, covs, criterion), means, covs, criterion)
         if N == 2:
@@ -508,6 +510,7 @@ def test_mbci_with_extreme_detection():
             np.testing.assert_array_equal(rb.weights[b], r.weights)
 
 
+@pytest.mark.slow
 def test_many_nodes_with_newton():
     """N up to 3000 (the SQP's support has at most n(n+1)/2 + 1 nodes whatever N), each
     result checked against exact arithmetic (`check_ci`)."""
