@@ -52,6 +52,7 @@ from .batch import fuse_batch
 from .estimates import Estimates, check_forward, check_time
 from .fusion import fuse
 from .limits import batch_bytes, limits
+from .linalg import row_norms
 from .results import FusionInputError, FusionSolverError, in_context
 from .validation import finite_real, hashable
 
@@ -205,7 +206,7 @@ class ProcessingNode:
             return np.zeros(0)
         with np.errstate(over="ignore"):  # past float64 (means near 1e308): inf, the
             d = means - np.array([self._tracks[f].mean for f in fids])  # farthest
-            return np.linalg.norm(d if self.dims is None else d[:, self.dims], axis=1)
+        return row_norms(d if self.dims is None else d[:, self.dims])  # (fuzz N1's kind)
 
     def _remember(self, fused: Estimates) -> None:
         """Keep this step's fused tracks, forget those older than `memory` steps."""

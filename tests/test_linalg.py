@@ -170,3 +170,19 @@ def test_lower_t_solve_is_the_transposed_solve(m, k):
     linalg.lower_t_solve(L, np.ascontiguousarray(B.T), X)
     ref = scipy.linalg.solve_triangular(L, B, lower=True, trans="T")
     assert np.abs(X - ref).max() <= 1e-13 * np.abs(ref).max()
+
+
+def test_row_norms_hold_any_scale_without_squares_that_overflow():
+    """`row_norms` against math.hypot (exact to rounding, no overflow) at scales 1e-300 to
+    1e300: np.linalg.norm's squares made 2e200 inf and 2e-170 zero (fuzz N1); inf where a
+    component is; empty vectors have norm 0."""
+    import math
+
+    rng = np.random.default_rng(8)
+    for scale in (1e-300, 1e-170, 1.0, 1e200, 1e300):
+        d = rng.standard_normal((5, 3)) * scale
+        np.testing.assert_allclose(linalg.row_norms(d), [math.hypot(*v) for v in d],
+                                   rtol=4e-16)
+    assert linalg.row_norms(np.array([[np.inf, 0.0], [-np.inf, 1.0]])).tolist() == [np.inf] * 2
+    assert linalg.row_norms(np.zeros((2, 0))).tolist() == [0.0, 0.0]
+    assert linalg.row_norms(np.zeros((3, 2))).tolist() == [0.0, 0.0, 0.0]

@@ -480,3 +480,21 @@ def test_no_memory_limit_fuses_every_group_in_one_batch(monkeypatch):
     reports = {k: fo.Estimates(rng.normal(size=(5, 2)) * 1e-3 + np.arange(5)[:, None] * 10,
                                np.tile(np.eye(2), (5, 1, 1)), None, 0.0) for k in "ab"}
     assert len(fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0).step(reports)) == 5
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e200, 1e-170])
+def test_the_nearer_fused_track_keeps_its_id_at_any_scale(scale):
+    """A group that shares one source track with each of two fused tracks (equal counts and
+    ages) takes the id of the nearer one. Its distances were np.linalg.norm's: at 1e200
+    both squares overflowed, the tie went to the lower id (fuzz N1's kind); at 1e-170 both
+    were 0."""
+    node = fo.ProcessingNode(["a", "b"], method="bci", threshold=2.0 * scale)
+    one = np.ones((1, 1, 1))
+
+    def report(x, t):
+        return fo.Estimates(np.array([[x * scale]]), one, [0], t)
+
+    first = node.step({"a": report(0.0, 1.0), "b": report(10.0, 1.0)}, 1.0)
+    assert first.ids.tolist() == [0, 1] and first.means[1, 0] == 10.0 * scale
+    second = node.step({"a": report(9.0, 2.0), "b": report(9.1, 2.0)}, 2.0)
+    assert second.ids.tolist() == [1]  # nearer to fused track 1 (at 10) than 0 (at 0)

@@ -31,6 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
 from fusion_opt import FusionInputError
+from fusion_opt.linalg import row_norms
 from fusion_opt.validation import cholesky_ok, symmetrised
 from trackers import _checks
 
@@ -243,17 +244,11 @@ def _assigned(D, u, p, k):
 
 
 def _distances(X, Y) -> np.ndarray:
-    """(m, k) Euclidean distances, each in units of its largest component difference, so
-    that no square over- or underflows (np.linalg.norm's squares of 1e200 were inf, cut to
-    c, and of 1e-170 were 0: fuzz N1); inf where a difference overflows (beyond any
+    """(m, k) Euclidean distances, without squares that over- or underflow
+    (`fusion_opt.linalg.row_norms`); inf where a difference overflows (beyond any
     cut-off)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        diff = np.abs(X[:, None, :] - Y[None, :, :])
-        top = diff.max(axis=-1)
-        unit = np.where((top > 0.0) & (top < np.inf), top, 1.0)
-        d = top * np.sqrt(np.einsum("ijk,ijk->ij", diff / unit[..., None],
-                                    diff / unit[..., None]))
-    return np.where(top < np.inf, d, np.inf)
+        return row_norms(X[:, None, :] - Y[None, :, :])
 
 
 def ospa(X, Y, c: float, p: float) -> float:
