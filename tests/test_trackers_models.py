@@ -148,3 +148,18 @@ def test_discretize_of_a_stiff_model_against_quadrature(F, L, dt):
     np.testing.assert_allclose(Q[0, 0], 1 / 1600, rtol=1e-12)
     with pytest.raises(FusionInputError, match="too long a step for this F"):
         models.turn_model(1e300, 0.1, 0.1, 0.05)
+
+
+@pytest.mark.parametrize("dt", [0.5, 1e6, 5.6e17, 1e24, 1e300])
+def test_a_long_step_without_dynamics_gives_the_closed_form_noise(dt):
+    """Fuzz O8: with F = 0, Q = L Qc L^T dt and A = I exactly; at dt = 1e24 scipy's expm
+    of Van Loan's nilpotent block matrix gave a Q off by 100% and indefinite. Against the
+    closed form, and for a small F (|F| dt = 1e-8) against its first-order expansion."""
+    L, Qc = np.array([[1.0], [2.0]]), np.array([[3.0]])
+    A, Q = models.discretize(np.zeros((2, 2)), L, Qc, dt)
+    np.testing.assert_array_equal(A, np.eye(2))
+    np.testing.assert_allclose(Q, L @ Qc @ L.T * dt, rtol=1e-14)
+    F = np.array([[0.0, 1.0], [0.0, 0.0]]) * (1e-8 / dt)
+    A, Q = models.discretize(F, L, Qc, dt)
+    np.testing.assert_allclose(Q, L @ Qc @ L.T * dt, rtol=1e-7)
+    assert np.linalg.eigvalsh(Q).min() >= -1e-12 * np.abs(Q).max()
