@@ -20,7 +20,6 @@ G22 = A^T and Q = G22^T G12. Measurements are y = H x + r, r ~ N(0, R).
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import numpy as np
