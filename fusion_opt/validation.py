@@ -139,7 +139,10 @@ def _reals(a: np.ndarray, name: str) -> np.ndarray:
 
 def short_repr(value) -> str:
     """repr(value), or its first 8 characters and its length where it is longer than 24 (an
-    int of 400 digits, named in a one-line refusal)."""
+    int of 400 digits, named in a one-line refusal); an int past Python's 4,300 digits of
+    repr by its size alone (its repr raised ValueError inside the refusal: fuzz O3)."""
+    if isinstance(value, int) and value.bit_length() > 14_000:
+        return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
     text = repr(value)
     return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
 

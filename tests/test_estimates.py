@@ -163,7 +163,11 @@ def test_decimal_ids_from_a_database_column_are_read_exactly():
                       ([Decimal(1), Decimal("NaN")], r"got Decimal\('NaN'\) at index 1"),
                       ([Decimal(2**63), Decimal(1)], r"64-bit integer .*got 9223372036854775808$"),
                       ([Decimal(1)], r"shape \(2,\)"),
-                      ([Decimal(1), Decimal(1)], "unique")):
+                      ([Decimal(1), Decimal(1)], "unique"),
+                      # fuzz O3, O4: refused by exponent (int() of 1E+1000000 took 75 s)
+                      # and named without the repr of a 5,001-digit int (a ValueError)
+                      ([Decimal("1E+1000000"), Decimal(1)], r"got Decimal\('1E\+1000000'\)$"),
+                      ([10**5000, 1], "got an integer of about 5001 digits$")):
         with pytest.raises(fo.FusionInputError, match=said):
             fo.Estimates(means, covs, bad)
 

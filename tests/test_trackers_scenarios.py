@@ -280,6 +280,13 @@ def test_integers_past_int64_and_steps_past_float64_are_handled_by_name():
     float64), and a target born beyond the run is simply never alive in it."""
     cfg = Table1Config(r=2**70)
     assert cfg.r == float(2**70) and type(cfg.r) is float
+    # fuzz O6: numpy integers too (np.int32 dt x n_steps wrapped to -960 and passed);
+    # O3: an int of 5,001 digits is named by its size (its repr raised ValueError)
+    assert type(scenarios.Table2Config(meas_sd=np.int64(2**32)).meas_sd) is float
+    with pytest.raises(FusionInputError, match="the target reaches 2.06e[+]12 m"):
+        Table1Config(dt=np.int32(2**31 - 1))
+    with pytest.raises(FusionInputError, match="dt = an integer of about 5001 digits is beyond"):
+        Table1Config(dt=10**5000)
     for make, match in ((lambda: Table1Config(dt=2**70), "dt = 1.18059e[+]21 is too long"),
                         (lambda: scenarios.Table2Config(dt=2**70), "dt = 1.18059e[+]21"),
                         (lambda: Table1Config(r=10**400), r"r = 10000000\.\.\. \(401 digits\) "

@@ -17,6 +17,7 @@ Measurements carry their step, time and true origin: the target's id (0, 1, ...)
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -137,8 +138,8 @@ def _float_fields(cfg) -> None:
     past float64's range refused by name."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
-        if isinstance(f.default, float) and isinstance(value, int) and not isinstance(
-                value, bool):
+        if isinstance(f.default, float) and isinstance(value, numbers.Integral) and \
+                not isinstance(value, bool | np.bool_):  # numpy's too (they wrap: fuzz O6)
             try:
                 object.__setattr__(cfg, f.name, float(value))
             except OverflowError:
