@@ -235,6 +235,18 @@ def test_ospa_and_gospa_at_any_scale_and_order_match_brute_force(scale, p):
     assert [a.tolist() for a in pairs] == [[0], [0]]
 
 
+def test_gospa_with_a_subnormal_alpha_is_its_root_from_logs():
+    """Fuzz O2: with alpha = 5e-324, (k - m) / alpha overflowed and a GOSPA of 2.105 was
+    refused as an overflow. Against the root taken in logs by hand,
+    c ((k - m) / alpha)^(1/p)."""
+    import math
+
+    for k, c, p, alpha in ((1, 1.0, 1000.0, 5e-324), (3, 2.0, 500.0, 1e-310)):
+        want = c * math.exp((math.log(k) - math.log(alpha)) / p)
+        got = metrics.gospa(np.zeros((0, 1)), np.zeros((k, 1)), c=c, p=p, alpha=alpha)
+        assert got == pytest.approx(want, rel=1e-14)
+
+
 @pytest.mark.parametrize("call,match", [
     (lambda: metrics.gospa([[0.0, 0.0], [1.0, 1.0]], np.zeros((0, 2)), 1e308, 2, 0.5),
      "GOSPA overflows"),
