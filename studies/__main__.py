@@ -47,7 +47,7 @@ from fusion_opt import FusionInputError  # noqa: E402  (a study's own input, ref
 
 from . import config as configs  # noqa: E402
 from . import meta, runner  # noqa: E402
-from .store import Store, StoreError, file_digests, verify_files  # noqa: E402
+from .store import Store, StoreError, file_digests, folder_problem, verify_files  # noqa: E402
 
 STUDIES = {
     "table1": "studies.table1",
@@ -156,8 +156,9 @@ def _run(args) -> None:
 
 def _run_study(name: str, config: dict, args) -> None:
     module, out = _module(name), args.out / name
-    if out.exists() and not out.is_dir():  # "[Errno 17] File exists" said less (fuzz N11)
-        raise configs.ConfigError(f"{out} is a file, not the study's folder: move it away or "
+    problem = folder_problem(out)  # "[Errno 17] File exists" said less (fuzz N11, O5)
+    if problem:
+        raise configs.ConfigError(f"{problem}, not the study's folder: move it away or "
                                   "choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -283,6 +284,9 @@ def _out(text: str) -> Path:
     out = Path(text)
     if out.exists() and not out.is_dir():
         raise configs.ConfigError(f"--out must name a folder, but {text} is a file")
+    problem = folder_problem(out)  # a parent that is a file, or a link to nothing (O5)
+    if problem:
+        raise configs.ConfigError(f"--out must name a folder, but {problem}")
     return out
 
 

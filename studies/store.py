@@ -320,10 +320,10 @@ def _plain_files(path: Path) -> None:
     `report` and `run` in open(), deaf to Ctrl-C (fuzz N10), and a file in place of the
     folder or a folder in place of the lock gave only "[Errno 17] File exists" or
     "[Errno 21] Is a directory" (N11)."""
-    folder = path.parent
-    if folder.exists() and not folder.is_dir():
-        raise StoreError(f"{folder} is a file, not the study's folder: move it away or "
-                         "choose another --out")
+    problem = folder_problem(path.parent)
+    if problem:
+        raise StoreError(f"{problem}, not the study's folder: move it away or choose another "
+                         "--out")
     for p in (path, path.with_name(path.name + ".lock")):
         if p.exists() and not stat.S_ISREG(p.stat().st_mode):
             kind = "a folder" if p.is_dir() else "not a regular file (a pipe, socket or " \
@@ -331,6 +331,19 @@ def _plain_files(path: Path) -> None:
             raise StoreError(f"{p} is {kind}, where the study's store keeps "
                              f"{'its lock' if p != path else 'its runs'}: move it away or "
                              "choose another --out")
+
+
+def folder_problem(folder: Path) -> str | None:
+    """Why folder cannot be a folder of a study's outputs: it, or the nearest of its
+    parents that exists, is a file; or one of them is a link to nothing (mkdir said only
+    "[Errno 17] File exists" or "[Errno 20] Not a directory": fuzz N11, O5). None if it
+    can."""
+    for p in (folder, *folder.parents):
+        if p.is_symlink() and not p.exists():
+            return f"{p} is a link to nothing"
+        if p.exists():
+            return None if p.is_dir() else f"{p} is a file"
+    return None
 
 
 def _lock(path: Path, create: bool) -> int | None:

@@ -293,3 +293,26 @@ def test_a_store_that_is_no_file_is_refused_at_once(tmp_path, capsys, make):
     for command in (["report", "table1"], ["run", "table1", "--runs", "2", "--quiet"]):
         assert main([*command, "--out", str(tmp_path)]) != 0
         assert said in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("make", ["dangling study folder", "out below a file", "dangling out"])
+def test_an_out_that_cannot_be_a_folder_is_refused_by_name(tmp_path, capsys, make):
+    """Fuzz O5: a study's folder that is a link to nothing, or an --out below a regular
+    file, gave only "[Errno 17] File exists" or "[Errno 20] Not a directory"."""
+    out = tmp_path / "out"
+    if make == "dangling study folder":
+        out.mkdir()
+        for name in ("table1", "backends"):
+            (out / name).symlink_to(tmp_path / "nowhere")
+        said = "is a link to nothing, not the study's folder"
+    elif make == "out below a file":
+        (tmp_path / "f").write_text("x")
+        out = tmp_path / "f" / "sub"
+        said = f"--out must name a folder, but {tmp_path / 'f'} is a file"
+    else:
+        out.symlink_to(tmp_path / "nowhere")
+        said = f"--out must name a folder, but {out} is a link to nothing"
+    for command in (["run", "table1", "--runs", "2", "--quiet"], ["run", "backends", "--quick",
+                                                                  "--quiet"]):
+        assert main([*command, "--out", str(out)]) != 0
+        assert said in capsys.readouterr().err
