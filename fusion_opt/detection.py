@@ -75,8 +75,10 @@ def detection_split(p_detect, chi=None, n_nodes: int | None = None, *, growth=No
                   E.reshape(-1, N))
     if code == _BAD:
         _refuse(p_detect, chi, n_nodes, growth)
-    if code == _LOW:  # a product may have underflowed: take those splits from logs
-        p, c = _checked(p_detect, chi, n_nodes, growth)
+    if code == _LOW:  # a product may have underflowed: take those splits from logs, in
+        fits(f"p_detect and {name} of shape {(*lead, N)}, a scale below 2^-1000 among them",
+             112.0 * math.prod(lead) * N)  # about 14 numbers a scale (fuzz O1: 2.3x a
+        p, c = _checked(p_detect, chi, n_nodes, growth)  # limit that counted 4 passed)
         low = np.ldexp(q, E) < 2.0**-1000
         log2_s = _log2_scales(p, c)
         E_log = np.floor(log2_s).astype(np.int64)

@@ -16,7 +16,7 @@ working_memory: the estimated memory of the native solvers' work arrays for one 
     stacks of N n x n matrices (factors, their QR, a subproblem's factors); for "slsqp"
     also scipy SLSQP's workspace, about 10 N^2 doubles (N = 20000 asked for 31 GiB); for
     the known-cross rule its whitened joint covariance (`joint_bytes`); and, for any
-    method, a whole batch's arrays (`batch_bytes`).
+    method, a whole batch's arrays (`batch_bytes`), counted together with them.
 array_memory: the estimated memory of the arrays a tracker (its particles and a step's
     temporaries) or a scenario simulator (a run's truth and measurements) allocates,
     checked when it is configured, and of an Estimates' checked copies

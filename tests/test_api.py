@@ -369,6 +369,33 @@ def test_optimality_gap_and_detection_shapes_are_refused_before_allocating(monke
     assert fo.optimality_gap(covs[:1000], w[:1000] * 3000) == 0.0
 
 
+def test_memory_that_is_allocated_at_once_is_counted_at_once(monkeypatch):
+    """Fuzz O7: the batch's arrays and the solver's work arrays were each held to
+    working_memory alone, so optimality_gap at n = 1, N = 3e6 peaked at 500 MiB under a
+    256 MiB limit; O1: detection scales below 2^-1000 are recomputed from logs in arrays
+    the count of 4 numbers a scale left out (2.3 times the limit). Both refused now, with
+    little allocated; a smaller low-scale problem still gets its scales."""
+    monkeypatch.setattr(fo.limits, "working_memory", 256 * 2**20)
+    N = 3_000_000
+
+    def gap():
+        with pytest.raises(fo.FusionSolverError, match="arrays of 1 problem and the weight"):
+            fo.optimality_gap(np.broadcast_to(np.eye(1), (N, 1, 1)), np.full(N, 1.0 / N))
+    assert _peak_bytes(gap) < 64 * 2**20  # the weights it was given (24 MB) and little else
+    monkeypatch.setattr(fo.limits, "array_memory", 64 * 2**20)
+    chi = np.ones(8)
+    chi[0] = 2.0**-1005  # one scale below 2^-1000: the path from logs
+
+    p = np.zeros((240_000, 8))  # 15 MB; the scales and their copies, 4 numbers each, fit
+
+    def low():
+        with pytest.raises(fo.FusionInputError, match="a scale below 2.-1000 among them"):
+            fo.detection_scales(p, chi)
+    assert _peak_bytes(low) <= 64 * 2**20  # within the limit (2.3 times it before)
+    s = fo.detection_scales(np.zeros((10, 8)), chi)
+    assert s.shape == (10, 8) and (s[:, 1:] == chi[0]).all() and (s[:, 0] > 0).all()
+
+
 def test_an_overflow_names_the_problem_and_what_overflowed():
     """Regression: "the fused estimate overflows" for a batch, without the problem, where
     only the trace of 1e308 I (the objective) overflows."""
@@ -381,9 +408,11 @@ def test_an_overflow_names_the_problem_and_what_overflowed():
 
 @pytest.mark.parametrize("backend", [None, "newton", "slsqp", "clarabel"])
 def test_the_memory_check_refuses_exactly_the_sizes_over_one_limit(backend, monkeypatch):
-    """over_memory's shortcut (the sum of the two working estimates below the limit) gives
-    what each estimate against its limit gives: at limits around each estimate, for a rule
-    (backend None), a native, SLSQP and a conic backend."""
+    """over_memory refuses exactly where the batch's arrays and the solver's work arrays,
+    allocated at once, together pass working_memory (fuzz O7: each was compared alone, so
+    1.9 times the limit passed), and where Clarabel's passes conic_memory: at limits around
+    each estimate and their sum, for a rule (backend None), a native, SLSQP and a conic
+    backend."""
     from fusion_opt import core
     from fusion_opt.limits import batch_bytes, conic_bytes, working_bytes
 
@@ -395,7 +424,7 @@ def test_the_memory_check_refuses_exactly_the_sizes_over_one_limit(backend, monk
         for lim in (np.nextafter(limit, 0), limit):
             monkeypatch.setattr(fo.limits, "working_memory", lim)
             monkeypatch.setattr(fo.limits, "conic_memory", 2.0**60)
-            over = max((arrays, *solver)) > lim
+            over = arrays + sum(solver) > lim
             assert (core.over_memory(req, n, N, B) is not None) == over, (lim, backend)
     if backend == "clarabel":
         monkeypatch.setattr(fo.limits, "conic_memory", np.nextafter(conic_bytes(n, N), 0))
