@@ -102,7 +102,7 @@ from .linalg import (
 )
 from .prepare import MAX_CONDITION, scaled
 from .results import FusionInputError, FusionSolverError, Status, overflow_error
-from .validation import SYMMETRY_RTOL, kernel_array, real_array
+from .validation import SYMMETRY_RTOL, kernel_array, real_array, symmetrised
 
 CI_WEIGHTS, GAIN_SHARES = "ci_weights", "gain_shares"
 _LN2 = np.log(2.0)
@@ -311,13 +311,12 @@ def gain_mean(means, K, shares, mean):
 
 def _single_node(means, covs, F, k, trace: bool, W, shares, mean, cov, obj) -> None:
     """One node (N = 1), whose gain is I under every rule: weight and share 1, its mean and
-    its covariance exactly as BCI's single node returns them (symmetrised, `scaled`), the
+    its covariance symmetrised (`validation.symmetrised`, the whole batch at once), the
     criterion there (log det from its factor F = C^-1, C C^T = P 2^-k)."""
     W[:], shares[:] = 1.0, 1.0
     mean[:] = means[:, 0]
     n = means.shape[2]
-    for b in range(means.shape[0]):
-        scaled(covs[b, 0], 1.0, 0, cov[b])
+    cov[:] = symmetrised(covs[:, 0])
     if trace:
         obj[:] = np.trace(cov, axis1=1, axis2=2)
     else:

@@ -47,7 +47,14 @@ from fusion_opt import FusionInputError  # noqa: E402  (a study's own input, ref
 
 from . import config as configs  # noqa: E402
 from . import meta, runner  # noqa: E402
-from .store import Store, StoreError, file_digests, folder_problem, verify_files  # noqa: E402
+from .store import (  # noqa: E402
+    Store,
+    StoreError,
+    check_folder,
+    file_digests,
+    folder_problem,
+    verify_files,
+)
 
 STUDIES = {
     "table1": "studies.table1",
@@ -156,10 +163,7 @@ def _run(args) -> None:
 
 def _run_study(name: str, config: dict, args) -> None:
     module, out = _module(name), args.out / name
-    problem = folder_problem(out)  # "[Errno 17] File exists" said less (fuzz N11, O5)
-    if problem:
-        raise configs.ConfigError(f"{problem}, not the study's folder: move it away or "
-                                  "choose another --out")
+    check_folder(out)  # "[Errno 17] File exists" said less (fuzz N11, O5)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if not _monte_carlo(module):
@@ -278,13 +282,11 @@ def _measurements(module, out: Path, recorded: dict, record: Path) -> None:
 
 def _out(text: str) -> Path:
     """The --out folder; an empty one is refused (it would silently be the current one),
-    and so is a path that exists and is not a folder."""
+    and so is one that cannot be a folder (`store.folder_problem`)."""
     if not text:
         raise configs.ConfigError("--out must name a folder, got ''")
     out = Path(text)
-    if out.exists() and not out.is_dir():
-        raise configs.ConfigError(f"--out must name a folder, but {text} is a file")
-    problem = folder_problem(out)  # a parent that is a file, or a link to nothing (O5)
+    problem = folder_problem(out)  # a file, below one, or a link to nothing (O5)
     if problem:
         raise configs.ConfigError(f"--out must name a folder, but {problem}")
     return out

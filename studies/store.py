@@ -320,10 +320,7 @@ def _plain_files(path: Path) -> None:
     `report` and `run` in open(), deaf to Ctrl-C (fuzz N10), and a file in place of the
     folder or a folder in place of the lock gave only "[Errno 17] File exists" or
     "[Errno 21] Is a directory" (N11)."""
-    problem = folder_problem(path.parent)
-    if problem:
-        raise StoreError(f"{problem}, not the study's folder: move it away or choose another "
-                         "--out")
+    check_folder(path.parent)
     for p in (path, path.with_name(path.name + ".lock")):
         if p.exists() and not stat.S_ISREG(p.stat().st_mode):
             kind = "a folder" if p.is_dir() else "not a regular file (a pipe, socket or " \
@@ -331,6 +328,14 @@ def _plain_files(path: Path) -> None:
             raise StoreError(f"{p} is {kind}, where the study's store keeps "
                              f"{'its lock' if p != path else 'its runs'}: move it away or "
                              "choose another --out")
+
+
+def check_folder(folder: Path) -> None:
+    """StoreError naming why folder cannot be a study's folder (`folder_problem`)."""
+    problem = folder_problem(folder)
+    if problem:
+        raise StoreError(f"{problem}, not the study's folder: move it away or choose another "
+                         "--out")
 
 
 def folder_problem(folder: Path) -> str | None:

@@ -176,7 +176,7 @@ def covariance(name: str, value, n: int) -> np.ndarray:
 def psd_covariance(name: str, value, n: int) -> np.ndarray:
     """Check a symmetric positive-semidefinite (n, n) matrix (a process noise may be singular)."""
     P, scale = _symmetric(name, value, n)
-    if np.min(np.linalg.eigvalsh(0.5 * P + 0.5 * P.T)) < -1e-10 * scale:  # no overflow
+    if np.min(np.linalg.eigvalsh(_fo.symmetrised(P))) < -1e-10 * scale:
         raise FusionInputError(f"{name} must be positive semidefinite")
     return P
 
