@@ -39,9 +39,11 @@ class ConfigError(ValueError):
 # ----------------------------------------------------------------------------- loading
 
 def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict:
-    """The configuration of study `name`: defaults, then [quick], then the file at path.
-    The tables of named entries that module studies.NAME lists in NAMED (dotted paths,
-    "network.neighbours") are replaced whole by an override instead of merged into."""
+    """The configuration of study `name`: defaults, then their [quick] (when quick), then
+    the file at path, then its own [quick] (when quick): a copy of a shipped configuration
+    is a valid file (its [quick] was refused as an unknown field). The tables of named
+    entries that module studies.NAME lists in NAMED (dotted paths, "network.neighbours")
+    are replaced whole by an override instead of merged into."""
     text = resources.files("studies").joinpath("configs", f"{name}.toml").read_text()
     config = tomllib.loads(text)
     named = frozenset(getattr(importlib.import_module(f"studies.{name}"), "NAMED", ()))
@@ -49,7 +51,11 @@ def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict
     if quick:
         config = _merge(config, quick_over, named)
     if path is not None:
-        config = _merge(config, _user_file(path, config), named)
+        user = _user_file(path, config)
+        user_quick = user.pop("quick", {})
+        config = _merge(config, user, named)
+        if quick:
+            config = _merge(config, user_quick, named)
     return config
 
 
@@ -70,10 +76,15 @@ def _user_file(path, defaults: dict) -> dict:
             user = tomllib.load(fh)
     except (OSError, ValueError) as exc:  # TOMLDecodeError, UnicodeDecodeError (not UTF-8)
         raise ConfigError(f"--config {path}: {exc}") from None
-    unknown = sorted(set(user) - set(defaults))
-    if unknown:
-        raise ConfigError(f"--config {path}: unknown field(s) {unknown}; "
-                          f"known: {sorted(defaults)}{renamed_hint(unknown, defaults)}")
+    quick = user.get("quick", {})
+    if not isinstance(quick, dict):
+        raise ConfigError(f"--config {path}: quick must be a table ([quick]), got "
+                          f"{short_repr(quick)}")
+    for where, fields in (("", user.keys() - {"quick"}), ("[quick] ", quick.keys())):
+        unknown = sorted(set(fields) - set(defaults))
+        if unknown:
+            raise ConfigError(f"--config {path}: {where}unknown field(s) {unknown}; known: "
+                              f"{sorted(defaults)}{renamed_hint(unknown, defaults)}")
     return _wide_ints_as_floats(user, "")
 
 

@@ -1,6 +1,8 @@
 """Every configuration error is refused before anything runs or is created: one line,
 naming the study and the field as the user wrote it, no traceback."""
 
+import re
+from importlib import resources
 from pathlib import Path
 
 import pytest
@@ -327,6 +329,31 @@ def test_a_group_checks_every_store_before_running_any_study(tmp_path, capsys):
 def test_the_default_and_quick_configurations_pass_their_check(name):
     for quick in (False, True):
         _module(name).check(configs.load(name, quick=quick))
+
+
+@pytest.mark.parametrize("name", sorted(STUDIES))
+def test_a_copy_of_a_shipped_configuration_is_a_valid_config_file(name, tmp_path):
+    """A user copies studies/configs/NAME.toml to edit it: the copy, [quick] table and all,
+    loads to exactly the shipped configuration, with --quick and without (its [quick] was
+    refused as an unknown field)."""
+    path = tmp_path / "copy.toml"
+    path.write_text(resources.files("studies").joinpath("configs", f"{name}.toml").read_text())
+    for quick in (False, True):
+        assert configs.load(name, quick, path) == configs.load(name, quick)
+
+
+def test_a_config_files_own_quick_table_applies_with_quick_only(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("runs = 40\n[quick]\nruns = 3\n[quick.scenario]\nn_steps = 20\n")
+    assert configs.load("table1", path=path)["runs"] == 40
+    quick = configs.load("table1", quick=True, path=path)
+    assert quick["runs"] == 3 and quick["scenario"]["n_steps"] == 20
+    assert quick["scenario"]["dt"] == configs.load("table1")["scenario"]["dt"]
+    for text, message in (("quick = 3\n", "quick must be a table ([quick]), got 3"),
+                          ("[quick]\nrunz = 3\n", "[quick] unknown field(s) ['runz']")):
+        path.write_text(text)
+        with pytest.raises(configs.ConfigError, match=re.escape(message)):
+            configs.load("table1", quick=True, path=path)
 
 
 def test_a_table_of_named_entries_is_replaced_whole_and_others_merge(tmp_path):
