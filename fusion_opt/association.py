@@ -17,7 +17,11 @@ is below `threshold`.
 - "assignment": source by source, in the order of `reports`, an optimal assignment
   (scipy's linear_sum_assignment) of the source's estimates to the groups so far, by
   distance to each group's centroid, gated by the threshold; an estimate left unassigned
-  opens a new group.
+  opens a new group. Each assignment matches as many estimates as the gate allows and,
+  among those, minimises the sum of distances (a pair outside the gate costs more than
+  any number of pairs inside it, as in a global nearest neighbour whose missed cost is
+  infinite): an estimate may join a group farther than its nearest one, within the
+  threshold, so that one more estimate is matched.
 
 A `Group` holds its members' sources, their track ids at those sources, and their means
 and covariances, so a processing node fuses it as it is and its (source, id) pairs name
