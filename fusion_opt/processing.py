@@ -49,6 +49,7 @@ import numpy as np
 from .association import Group, associate, check_dims, check_method, check_threshold
 from .backends import BACKENDS
 from .batch import fuse_batch
+from .core import DEFAULT_BACKEND
 from .estimates import Estimates, check_forward, check_time
 from .fusion import fuse
 from .limits import batch_bytes, limits
@@ -67,7 +68,8 @@ class ProcessingNode:
 
     method, criterion, backend: as in `fo.fuse_batch` ("known-cross" is not offered: a
     processing node does not know the cross-covariances of its sources); backend is the
-    weight solver of "ci", "bci" and "mbci", and unused by the rules, which have none;
+    weight solver of "ci", "bci" and "mbci" (None: "newton"), and the rules, which have
+    none, refuse one, as `fo.fuse` does;
     association ("nearest" | "assignment"), threshold (> 0), dims (state components
     compared; None: all): as in `fo.associate`;
     p_detect: {source: detection probability in [0, 1]} for every source, for "mbci" only;
@@ -78,7 +80,7 @@ class ProcessingNode:
     1: only the previous step's tracks);
     name: stamped on the fused Estimates as `node` and named in errors."""
 
-    def __init__(self, sources, *, method="mbci", criterion="trace", backend="newton",
+    def __init__(self, sources, *, method="mbci", criterion="trace", backend=None,
                  association="nearest", threshold, dims=None, p_detect=None, chi=1.0,
                  growth=None, min_sources=1, memory=1, name=None):
         self.name = _check_name(name)
@@ -150,14 +152,13 @@ class ProcessingNode:
         if self.method == "mbci":
             p = [[self.p_detect[s] for s in groups[i].sources] for i in idx]
             extra = dict(p_detect=np.array(p), chi=self.chi)  # p (B, size)
-        backend = self.backend if self.method in CI_FAMILY else None
         try:
-            r = fuse_batch(M, C, self.method, self.criterion, backend, **extra)
+            r = fuse_batch(M, C, self.method, self.criterion, self.backend, **extra)
         except (FusionInputError, FusionSolverError) as exc:
-            raise self._failed(exc, [groups[i] for i in idx], backend, extra) from None
+            raise self._failed(exc, [groups[i] for i in idx], extra) from None
         means[idx], covs[idx] = r.mean, r.cov
 
-    def _failed(self, exc, groups: list[Group], backend, extra: dict):
+    def _failed(self, exc, groups: list[Group], extra: dict):
         """The error of a fuse_batch of groups, naming this node and the first group that
         fails when fused alone (the batch's message says "problem b", which the caller does
         not know): its sources, in the order its message numbers them as nodes, and their
@@ -165,7 +166,7 @@ class ProcessingNode:
         for b, g in enumerate(groups):
             one = {k: v[b] if np.ndim(v) == 2 else v for k, v in extra.items()}
             try:
-                fuse(g.means, g.covs, self.method, self.criterion, backend, **one)
+                fuse(g.means, g.covs, self.method, self.criterion, self.backend, **one)
             except (FusionInputError, FusionSolverError) as alone:
                 members = [f"source {s!r} track {i} (node {k})" for k, (s, i)
                            in enumerate(zip(g.sources, g.ids.tolist(), strict=True))]
@@ -248,7 +249,13 @@ class ProcessingNode:
                             f"can form larger groups: use 'bci' or 'mbci'")
         return method
 
-    def _check_backend(self, backend) -> str:
+    def _check_backend(self, backend) -> str | None:
+        if self.method not in CI_FAMILY:
+            if backend is not None:
+                raise self._err(f"method {self.method!r} has no weight solver: leave backend "
+                                f"unset (got {backend!r})")
+            return None
+        backend = DEFAULT_BACKEND if backend is None else backend
         self._check_choice("backend", backend, BACKENDS)
         if backend == "closed-form" and self.method in CI_FAMILY and len(self.sources) > 2:
             raise self._err(f"backend 'closed-form' fuses pairs, but {len(self.sources)} "
@@ -267,7 +274,8 @@ class ProcessingNode:
                                               ("chi", finite_real(chi) != 1.0),
                                               ("growth", growth is not None)) if stray]
             if given:
-                raise self._err(f"{' and '.join(given)} apply to method 'mbci', not "
+                verb = "apply" if len(given) > 1 else "applies"
+                raise self._err(f"{' and '.join(given)} {verb} to method 'mbci' only, not "
                                 f"{self.method!r}")
             return None, None
         if not isinstance(p_detect, Mapping):

@@ -71,7 +71,8 @@ def test_fused_tracks_equal_fuse_on_their_groups(method, criterion):
 @pytest.mark.parametrize("method", ["ci", "ici", "ei"])
 def test_pairwise_methods_with_two_sources(method):
     rng = np.random.default_rng(11)
-    node = fo.ProcessingNode(["a", "b"], method=method, threshold=3.0, backend="clarabel")
+    solver = {"backend": "clarabel"} if method == "ci" else {}  # the rules have none
+    node = fo.ProcessingNode(["a", "b"], method=method, threshold=3.0, **solver)
     reports = _scene(rng, ["a", "b"], n_targets=5)
     _check_against_fuse(node, reports, node.step(reports), lambda g: {})
 
@@ -350,13 +351,18 @@ GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
     (["a", "b"], dict(chi=0.9, growth=1.1), "not both"),
     (["a", "b"], dict(chi=0.0), "chi"),
     (["a", "b"], dict(growth=0.5), "growth"),
-    (["a", "b"], dict(method="bci", p_detect={"a": 1, "b": 1}), "p_detect apply to.*mbci"),
-    (["a", "b"], dict(method="bci", p_detect=None, chi=0.5), "chi apply to.*mbci"),
-    (["a", "b"], dict(method="bci", growth=1.5), "growth apply to.*mbci"),
+    (["a", "b"], dict(method="bci", p_detect={"a": 1, "b": 1}), "p_detect applies to .*mbci"),
+    (["a", "b"], dict(method="bci", p_detect=None, chi=0.5), "chi applies to method .mbci. only"),
+    (["a", "b"], dict(method="bci", p_detect=None, growth=1.5), "growth applies to .*mbci"),
     (["a", "b"], dict(memory=0), "memory must be an integer >= 1"),
     (["a", "b"], dict(memory=2.5), "memory must be an integer >= 1"),
     (["a", "b"], dict(method=np.array(["bci", "mbci"])), "method must be one of"),
     (["a", "b"], dict(backend=["newton"]), "backend must be one of"),
+    (["a", "b"], dict(method="naive", p_detect=None, backend="newton"),
+     "method 'naive' has no weight solver: leave backend unset"),
+    (["a", "b"], dict(method="fast-ci", p_detect=None, backend="clarabel"), "no weight solver"),
+    (["a", "b"], dict(method="bci", p_detect=None, chi=0.5, growth=2.0),
+     "chi and growth apply to method .mbci. only, not .bci."),
     (["a", "b"], dict(min_sources=3), r"min_sources must be an integer in \[1, 2\]"),
     (["a", "b"], dict(min_sources=1.0), "min_sources"),
     (["a", "b"], dict(name=["x"]), "name"),
