@@ -22,6 +22,12 @@ from .results import BatchFusionResult
 
 def fuse_batch(means, covs, method="bci", criterion="trace", backend=None,
                **method_args) -> BatchFusionResult:
-    """Fuse B problems of N estimates each: means (B, N, n), covs (B, N, n, n)."""
+    """Fuse B problems of N estimates each: means (B, N, n), covs (B, N, n, n); a
+    BatchFusionResult with weights (B, N), mean (B, n), cov (B, n, n), objective (B,),
+    gap (B,), status (B,) and iterations (B,).
+
+    method, criterion, backend and method_args: as in `fo.fuse`, per-problem MBCI
+    arguments (p_detect, chi or growth) scalars, (N,) or (B, N), known-cross's cross
+    (B, N, N, n, n). Each problem comes out bit for bit as `fo.fuse` gives it alone."""
     req = core.request(method, criterion, backend, dict(method_args))
     return core.run(*core.arrays(means, covs, True, req=req), req, True)

@@ -38,7 +38,13 @@ def bci(means, covs, criterion="trace", backend=None, *, polish=True) -> FusionR
 
 
 def ci(m_a, P_a, m_b, P_b, criterion="trace", backend=None, *, polish=True) -> FusionResult:
-    """Pairwise covariance intersection of (m_a (n,), P_a (n, n)) and (m_b, P_b)."""
+    """Pairwise covariance intersection of (m_a (n,), P_a (n, n)) and (m_b, P_b).
+
+    Returns a FusionResult with weights (2,) = (omega, 1 - omega), mean (n,), cov (n, n),
+    objective and gap: P^-1 = omega P_a^-1 + (1 - omega) P_b^-1 with omega minimising
+    tr P ("trace") or log det P ("logdet") exactly. backend: "newton" (default) or
+    "closed-form" (both exact and compiled), a conic reference ("clarabel", ...) or
+    "slsqp"; polish=False returns an inexact backend's weights as they are."""
     req = core.request("ci", criterion, backend, {"polish": polish})
     means, covs = _pair(m_a, P_a, m_b, P_b, req)
     return core.run(means, covs, req, False, _PAIR)
