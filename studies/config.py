@@ -59,6 +59,20 @@ def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict
     return config
 
 
+def paper_setting(name: str, config: dict, fields) -> bool:
+    """Whether config holds the shipped defaults of study `name` at every one of fields
+    (dotted paths, "fusion.growth"): the setting of the paper's runs, beside which a table
+    shows the paper's values (a user's own scenario showed them too, as if comparable)."""
+    default = load(name)
+
+    def at(c, path):
+        for key in path.split("."):
+            c = c[key]
+        return c
+
+    return all(at(config, f) == at(default, f) for f in fields)
+
+
 def _merge(base: dict, over: dict, named: frozenset = frozenset(), where: str = "") -> dict:
     out = copy.deepcopy(base)
     for key, value in over.items():

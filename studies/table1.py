@@ -159,7 +159,7 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     """table1.md, its tables as table1.csv and table1_paired.csv, and the figures of run
     FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, ROWS, COLUMNS)
-    stats.write_csv(out / "table1.csv", rows, COLUMNS, PAPER, ("paper_mse", "paper_mncm"))
+    stats.write_csv(out / "table1.csv", rows, COLUMNS, _paper(config), ("paper_mse", "paper_mncm"))
     stats.write_rows(out / "table1_paired.csv",
                      [{"measure": col, **p} for col, p in _paired(results).items()])
     (out / "table1.md").write_text(_markdown(config, rows, results))
@@ -182,7 +182,7 @@ def _markdown(config, rows, results) -> str:
              "| row | MSE full | paper MSE | MNCM full | paper MNCM | MSE pos | MNCM pos "
              "| ANEES (4-dof) |", "|---|---|---|---|---|---|---|---|"]
     for row, cols in rows.items():
-        p_mse, p_mncm = PAPER.get(row, (None, None))
+        p_mse, p_mncm = _paper(config).get(row, (None, None))
         cells = [stats.fmt(*cols[c]) for c in COLUMNS]
         lines.append(f"| {row} | {cells[0]} | {p_mse or '-'} | {cells[1]} | {p_mncm or '-'} "
                      f"| {cells[2]} | {cells[3]} | {cells[4]} |")
@@ -192,7 +192,18 @@ def _markdown(config, rows, results) -> str:
     for col, p in _paired(results).items():
         lines.append(f"| {col} | {stats.fmt(p['mean_diff'], p['low'], p['high'], 3)} "
                      f"| {p['share_better']:.2f} |")
-    return "\n".join(lines + ["", _check_note(config, results)]) + "\n"
+    shown = [] if _paper(config) else ["", PAPER_NOTE]
+    return "\n".join(lines + ["", _check_note(config, results)] + shown) + "\n"
+
+
+PAPER_FIELDS = ("scenario", "fusion.growth")
+PAPER_NOTE = ("The paper's columns are left empty: this configuration's scenario or growth "
+              "is not the paper's.")
+
+
+def _paper(config) -> dict:
+    """The paper's values by row, or none when config is not the paper's setting."""
+    return PAPER if configs.paper_setting("table1", config, PAPER_FIELDS) else {}
 
 
 def _check_note(config, results) -> str:

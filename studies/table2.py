@@ -195,7 +195,8 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     """table2.md, its tables as table2.csv and table2_paired.csv, and the figures of run
     FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, results[0], COLUMNS)
-    stats.write_csv(out / "table2.csv", rows, COLUMNS, PAPER, ("paper_mse_e-3", "paper_mncm"))
+    stats.write_csv(out / "table2.csv", rows, COLUMNS, _paper(config),
+                    ("paper_mse_e-3", "paper_mncm"))
     stats.write_rows(out / "table2_paired.csv",
                      [{"node": proc, "measure": key, **p}
                       for proc, pair in _paired(config, results).items()
@@ -222,7 +223,7 @@ def _markdown(config, rows, results) -> str:
              "| node | MSE | paper MSE (x1e-3) | MNCM | paper MNCM | MSE pos | MNCM pos | OSPA "
              "| GOSPA | card. error |", "|---" * 10 + "|"]
     for row, cols in rows.items():
-        p_mse, p_mncm = PAPER.get(row, ("-", "-"))
+        p_mse, p_mncm = _paper(config).get(row, ("-", "-"))
         c = [stats.fmt(*cols[k]) for k in COLUMNS]
         lines.append(f"| {row} | {c[0]} | {p_mse} | {c[1]} | {p_mncm} | "
                      + " | ".join(c[2:]) + " |")
@@ -235,7 +236,18 @@ def _markdown(config, rows, results) -> str:
         lines.append(f"| {proc} | {stats.fmt(pm['mean_diff'], pm['low'], pm['high'], 3)} | "
                      f"{share} | "
                      f"{stats.fmt(pc['mean_diff'], pc['low'], pc['high'], 3)} |")
-    return "\n".join(lines) + "\n"
+    shown = [] if _paper(config) else ["", PAPER_NOTE]
+    return "\n".join(lines + shown) + "\n"
+
+
+PAPER_FIELDS = ("scenario", "network", "fusion", "metrics")
+PAPER_NOTE = ("The paper's columns are left empty: this configuration's scenario, network, "
+              "growth or metrics are not the paper's.")
+
+
+def _paper(config) -> dict:
+    """The paper's values by row, or none when config is not the paper's setting."""
+    return PAPER if configs.paper_setting("table2", config, PAPER_FIELDS) else {}
 
 
 MEASURED = {"target": dict(marker="o", ms=2.2, color="tab:blue", ls="none",

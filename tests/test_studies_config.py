@@ -396,3 +396,20 @@ def test_the_growth_reaches_the_fusion():
         config["fusion"]["growth"] = growth
         result, _ = table1.run_one(config, 1, seed)
         assert (result["modified CI"] == result["CI"]) is same
+
+
+@pytest.mark.parametrize("name,field,value", [("table1", "scenario.q", 0.2),
+                                              ("table1", "fusion.growth", 1.5),
+                                              ("table2", "network.threshold", 0.5),
+                                              ("table2", "metrics.cutoff", 1.0)])
+def test_the_paper_values_are_shown_beside_the_paper_setting_only(name, field, value):
+    """A user's own scenario is not set beside the paper's numbers (it was, row by row, as
+    if comparable); the run count, seed, backend and quick settings do not change that."""
+    module = _module(name)
+    for quick in (False, True):
+        config = configs.load(name, quick)
+        config |= {"runs": 3, "seed": 1, "backend": "clarabel"}
+        assert module._paper(config) == module.PAPER and module.PAPER
+    table, key = field.split(".")
+    config[table] = config[table] | {key: value}
+    assert module._paper(config) == {}
