@@ -205,24 +205,27 @@ class _CompileNotice(_numba_event.Listener):
     the application configures no logging), that numba has started compiling one of the
     package's kernels: the first fusion on a machine otherwise sits silent for about a
     minute. numba announces a compile only on a miss of its disk cache, so a fusion whose
-    kernels are cached (or compiled already) never reaches this. `quiet` keeps it silent
-    (a worker process whose parent tells instead)."""
+    kernels are cached (or compiled already) never reaches this. `send_to` gives it to
+    another channel (a worker process passes it to its parent, which tells)."""
 
     def __init__(self):
         self.told = False
+        self._channel = None
 
     def tell(self, write=None) -> None:
         """The notice, unless told already: logged, or given to write(text) (an
-        application's own channel, such as its progress bar's)."""
+        application's own channel, such as its progress bar's; default: `send_to`'s)."""
         if not self.told:
             self.told = True
+            write = self._channel if write is None else write
             if write is None:
                 logging.getLogger("fusion_opt").warning(COMPILE_NOTICE)
             else:
                 write(COMPILE_NOTICE)
 
-    def quiet(self) -> None:
-        self.told = True
+    def send_to(self, write) -> None:
+        """Later notices go to write(text) instead of the log."""
+        self._channel = write
 
     def on_start(self, event):
         fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)

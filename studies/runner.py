@@ -16,9 +16,9 @@ goes on to the caller.
 
 A local pool first has its workers compile the library's compiled kernels, stage by stage,
 a part each (`fusion_opt.core.compile_part`, KERNEL_STAGES), which on a machine with a
-cold cache shortens the first runs by a third; past a second of it, the pool says once
-that the kernels are being compiled (`fusion_opt.linalg.NOTICE`; the workers themselves
-say nothing).
+cold cache shortens the first runs by a third; when a worker starts to compile one, the
+pool says once that the kernels are being compiled (`fusion_opt.linalg.NOTICE`; the
+workers pass it on instead of saying it).
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ from tqdm import tqdm
 from .store import Store
 
 FIGURE_RUN = 0  # the run whose figure data the report draws
-_LOAD_S = 1.0  # the workers' kernels take longer than this only when they are compiled
 
 
 class RunError(RuntimeError):
@@ -139,20 +138,22 @@ class _Serial:
         pass
 
 
-def _worker() -> None:
+def _worker(compiling) -> None:
     """A pool worker: SIGINT ignored, SIGTERM (how the pool ends it) ends it, in a process
-    group of its own; it does not tell of its kernel compiles (`_Pool._compile_kernels`
-    does, once for all workers). Its own group keeps a signal sent to the study's group
-    (kill -TERM -PGID, a service manager's stop) from the worker: one killed by it while
-    taking its next task left the lock of the pool's task queue held, and the pool's
-    terminate then waited for that lock for ever (the SIGTERM test with 2 workers hung,
-    once in about 10 runs). The main process ends the workers, as on Ctrl-C."""
+    group of its own; its first kernel compile is put on the queue `compiling` for the
+    pool to tell, once for all workers (a timer, 1 s of waiting for the workers' kernels,
+    told it on a busy machine whose cache was warm). Its own group keeps a signal sent to
+    the study's group (kill -TERM -PGID, a service manager's stop) from the worker: one
+    killed by it while taking its next task left the lock of the pool's task queue held,
+    and the pool's terminate then waited for that lock for ever (the SIGTERM test with 2
+    workers hung, once in about 10 runs). The main process ends the workers, as on
+    Ctrl-C."""
     from fusion_opt.linalg import NOTICE
 
     os.setpgrp()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    NOTICE.quiet()
+    NOTICE.send_to(lambda _text: compiling.put(True))
 
 
 class _Pool:
@@ -160,7 +161,9 @@ class _Pool:
     process group): the main process decides, and terminates them."""
 
     def __init__(self, workers: int, kernels=None):
-        self._pool = multiprocessing.Pool(workers, initializer=_worker)
+        self._compiling = multiprocessing.SimpleQueue()  # a worker started to compile
+        self._pool = multiprocessing.Pool(workers, initializer=_worker,
+                                          initargs=(self._compiling,))
         self._arrived: queue.SimpleQueue = queue.SimpleQueue()
         self._kernels = kernels
 
@@ -180,34 +183,32 @@ class _Pool:
         """The workers compile the library's kernels before the runs, stage by stage, the
         parts of a stage at once (`fusion_opt.core.KERNEL_STAGES`): on a cold cache and 2
         cores, 33 s and then 6 s, instead of each worker compiling all of it on its first
-        runs (about 70 s). On a warm cache, a load of 0.1 s. Past a second of it, the
-        kernels are being compiled, and this says so (`fusion_opt.linalg.NOTICE`), once.
-        Only the parts the study's runs call (`run_all`'s kernels)."""
+        runs (about 70 s). On a warm cache, a load of 0.1 s. Only the parts the study's
+        runs call (`run_all`'s kernels)."""
         from fusion_opt.core import KERNEL_STAGES, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results
-        t0 = time.monotonic()
         for stage in KERNEL_STAGES:
             parts = [p for p in stage if self._kernels is None or p in self._kernels]
             for part in parts:
                 self._pool.apply_async(compile_part, (part,), callback=compiled.put,
                                        error_callback=compiled.put)
             for _ in parts:
-                item = self._next(compiled, tell_after=_LOAD_S, since=t0)
+                item = self._next(compiled)
                 if isinstance(item, BaseException):
                     raise item
 
-    def _next(self, arrived=None, tell_after=None, since=None):
-        """The next item of `arrived` (default: the runs'); past tell_after seconds of
-        waiting (since the monotonic time `since`, default now), the compile notice."""
+    def _next(self, arrived=None):
+        """The next item of `arrived` (default: the runs'); while waiting, the compile
+        notice once a worker has started to compile."""
         arrived = self._arrived if arrived is None else arrived
-        t0 = time.monotonic() if since is None else since
         while True:  # a short timeout keeps the wait responsive to Ctrl-C
             with contextlib.suppress(queue.Empty):
                 return arrived.get(timeout=0.1)
-            if tell_after is not None and time.monotonic() - t0 > tell_after:
+            if not self._compiling.empty():
                 from fusion_opt.linalg import NOTICE
 
+                self._compiling.get()
                 NOTICE.tell(lambda text: tqdm.write(text, file=sys.stderr))  # above the bar
 
     def finished(self) -> list[tuple]:
