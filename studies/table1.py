@@ -286,8 +286,10 @@ def _covnorm_figure(times, covnorm, window, seed, path) -> None:
     fig, (ax, *diffs) = plotting.panels(1 + len(close), 1, width=8, height=8.6,
                                         gridspec_kw={"height_ratios": [2.4, 1, 1]})
     sel = (times >= window[0]) & (times <= window[1])
-    if not sel.any():  # a shortened run ends before the window: show all of it
+    title = "Table 1: 2-norm of the covariance"
+    if not sel.any():  # a shortened run ends before the window: show all of it, and say so
         sel[:] = True
+        title += f"\nover the whole run: no step in fusion.window {list(window)} s;"
     for row in COVNORM_ROWS:
         ax.plot(times[sel], np.array(covnorm[row])[sel], label=row, **COVNORM_STYLE[row])
     ax.set(xlabel="time (s)", ylabel="2-norm of the covariance\n(full 4x4: m², (m/s)², m²/s)")
@@ -297,5 +299,5 @@ def _covnorm_figure(times, covnorm, window, seed, path) -> None:
         diff.plot(times[sel], np.array(covnorm[row])[sel] - ci, **COVNORM_STYLE[row])
         diff.set(xlabel="time (s)", ylabel=f"{row} minus CI\n(same units)")
     plotting.legend_below(fig, ax.get_lines(), ncol=3)
-    plotting.run_title(fig, "Table 1: 2-norm of the covariance", FIGURE_RUN, seed)
+    plotting.run_title(fig, title, FIGURE_RUN, seed)
     plotting.save(fig, path)
