@@ -108,7 +108,7 @@ def assemble_one(F, means, covs, q, E, k, vertex, pnorm, w, trace: bool, mean, c
     says what they hold at w already (`newton.solve_one`: the QR, FACTORED, and the
     gradient in g, GRADED), which is not computed again."""
     col = 0 if trace else 1
-    j = _vertex_or_interior(F, w, vertex[:, col], pnorm, covs, q, E, k, At, Vt, R, Ri, P, B,
+    j = _vertex_or_interior(F, w, vertex, col, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B,
                             X, eta, trace, state >= FACTORED)
     if j >= 0:
         fill(w, 0.0)
@@ -130,23 +130,26 @@ def all_finite(a) -> bool:
 
 
 @jit
-def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X, eta,
-                        trace: bool, factored: bool) -> int:
+def _vertex_or_interior(F, w, vertex, col, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X,
+                        eta, trace: bool, factored: bool) -> int:
     """The node whose input is the result (best-vertex rule), or -1 for a fused one, when
     the buffers are left factored at w (factored: they are already). eta (N,) receives
-    the scales' errors. A solver's vertex gives way to a node of a lower vertex objective
-    fv: certified within its tolerance, it may stop at a node up to that tolerance worse
-    than the best (900 ulps at n = 1, and which node depended on the nodes' order: fuzz
-    P1)."""
+    the scales' errors. The best node is the least vertex objective fv = vertex[:, col],
+    ties broken by the other criterion's (`_before`). A solver's vertex gives way to a
+    better node: certified within its tolerance, it may stop at a node up to that
+    tolerance worse than the best (900 ulps at n = 1, and which node depended on the
+    nodes' order: fuzz P1; at n = 1 the log of variances one ulp apart ties: fuzz Q2)."""
     N, n = F.shape[0], F.shape[1]
-    support, single = 0, -1
+    fv = vertex[:, col]
+    support, single, best = 0, -1, 0
     for i in range(N):
         if w[i] > 0.0:
             support += 1
             single = i
-    best = int(np.argmin(fv))
+        if _before(vertex, i, best, col):
+            best = i
     if support == 1:
-        return best if fv[best] < fv[single] else single
+        return best if _before(vertex, best, single, col) else single
     if factored:
         f = value(R, Ri, trace)
     else:
@@ -166,6 +169,15 @@ def _vertex_or_interior(F, w, fv, pnorm, covs, q, E, k, At, Vt, R, Ri, P, B, X, 
         if low <= high and not _improves_on(F, w, i, covs, q, E, k, eta, trace):
             return best
     return -1
+
+
+@jit
+def _before(vertex, a: int, b: int, col: int) -> bool:
+    """Whether node a's vertex objectives (vertex[a, col], then the other criterion's)
+    are below node b's."""
+    if vertex[a, col] != vertex[b, col]:
+        return vertex[a, col] < vertex[b, col]
+    return vertex[a, 1 - col] < vertex[b, 1 - col]
 
 
 @jit

@@ -97,7 +97,8 @@ def test_a_vertex_result_is_the_best_node_in_any_order(criterion):
     v_i). Variances 1e-15..1e-12 apart: the solver, certified within its tolerance, may
     stop at another node, which came back in 2 of the 6 orders of fuzz P1's three nodes
     (900 ulps worse) and in 4-9 % of random cases. Now a vertex result is the least
-    variance in every order, and at n = 2, 4 (spreads 1e-13) its criterion is the least
+    variance in every order (also one ulp apart, where the log dets tie and the trace
+    breaks the tie: fuzz Q2), and at n = 2, 4 (spreads 1e-13) its criterion is the least
     of numpy's over the nodes, within rounding (relative for the trace, in nats
     for log det)."""
     v = np.array([float.fromhex("0x1.000000000000cp+0"), float.fromhex("0x1.00000000006b5p+0"),
@@ -105,6 +106,10 @@ def test_a_vertex_result_is_the_best_node_in_any_order(criterion):
     for perm in itertools.permutations(range(3)):
         r = fo.bci(np.arange(3.0)[list(perm), None], v[list(perm), None, None], criterion)
         assert r.cov[0, 0] == v.min() and r.weights[perm.index(2)] == 1.0
+    for a in (1.0, 3.0, 0.7, 1e-200, 5.247914532927937e-196, 123.456):  # one ulp apart: the
+        b = np.nextafter(a, np.inf)                   # logs tie, the variances do not (Q2)
+        for pair in ([a, b], [b, a]):
+            assert fo.bci(np.zeros((2, 1)), np.array(pair)[:, None, None], criterion).cov == a
     rng = np.random.default_rng([112, len(criterion)])
     vertices = 0
     for n in (1, 2, 4):
