@@ -51,7 +51,7 @@ def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict
     if quick:
         config = _merge(config, quick_over, named)
     if path is not None:
-        user = _user_file(path, config)
+        user = _user_file(path, config, named)
         user_quick = user.pop("quick", {})
         config = _merge(config, user, named)
         if quick:
@@ -59,10 +59,12 @@ def load(name: str, quick: bool = False, path: str | Path | None = None) -> dict
     return config
 
 
-def paper_setting(name: str, config: dict, fields) -> bool:
-    """Whether config holds the shipped defaults of study `name` at every one of fields
-    (dotted paths, "fusion.growth"): the setting of the paper's runs, beside which a table
-    shows the paper's values (a user's own scenario showed them too, as if comparable)."""
+def paper_setting(name: str, config: dict, scenario, fields) -> bool:
+    """Whether config is the setting of the paper's runs of study `name`, beside which a
+    table shows the paper's values (a user's own scenario showed them too, as if
+    comparable): its scenario, as scenario(config) builds it (so a field written out at
+    its default value is the default), and the shipped defaults at every one of fields
+    (dotted paths, "fusion.growth")."""
     default = load(name)
 
     def at(c, path):
@@ -70,7 +72,8 @@ def paper_setting(name: str, config: dict, fields) -> bool:
             c = c[key]
         return c
 
-    return all(at(config, f) == at(default, f) for f in fields)
+    return scenario(config) == scenario(default) and \
+        all(at(config, f) == at(default, f) for f in fields)
 
 
 def _merge(base: dict, over: dict, named: frozenset = frozenset(), where: str = "") -> dict:
@@ -84,7 +87,7 @@ def _merge(base: dict, over: dict, named: frozenset = frozenset(), where: str = 
     return out
 
 
-def _user_file(path, defaults: dict) -> dict:
+def _user_file(path, defaults: dict, named: frozenset = frozenset()) -> dict:
     try:
         with open(path, "rb") as fh:
             user = tomllib.load(fh)
@@ -94,12 +97,28 @@ def _user_file(path, defaults: dict) -> dict:
     if not isinstance(quick, dict):
         raise ConfigError(f"--config {path}: quick must be a table ([quick]), got "
                           f"{short_repr(quick)}")
-    for where, fields in (("", user.keys() - {"quick"}), ("[quick] ", quick.keys())):
-        unknown = sorted(set(fields) - set(defaults))
-        if unknown:
-            raise ConfigError(f"--config {path}: {where}unknown field(s) {unknown}; known: "
-                              f"{sorted(defaults)}{renamed_hint(unknown, defaults)}")
+    unknown = sorted(set(user) - {"quick"} - set(defaults))
+    if unknown:
+        raise ConfigError(f"--config {path}: unknown field(s) {unknown}; known: "
+                          f"{sorted(defaults)}{renamed_hint(unknown, defaults)}")
+    _known_in(quick, defaults, named, "quick", path)  # checked with or without --quick
     return _wide_ints_as_floats(user, "")
+
+
+def _known_in(over: dict, defaults: dict, named: frozenset, where: str, path) -> None:
+    """Refuses a field of the table `over` (at `where`) or of its tables that `defaults`
+    does not have, but inside the tables of named entries (NAMED), which name anything:
+    a [quick] table is used with --quick only, and a typo in it would otherwise pass
+    until then, named as a field of the table it merges into."""
+    unknown = sorted(set(over) - set(defaults))
+    if unknown:
+        raise ConfigError(f"--config {path}: [{where}] has unknown field(s) {unknown}; "
+                          f"known: {sorted(defaults)}{renamed_hint(unknown, defaults)}")
+    for key, value in over.items():
+        at = f"{where}.{key}"
+        if isinstance(value, dict) and isinstance(defaults[key], dict) and \
+                at.removeprefix("quick.") not in named:
+            _known_in(value, defaults[key], named, at, path)
 
 
 def _wide_ints_as_floats(value, where: str):

@@ -196,14 +196,14 @@ def _markdown(config, rows, results) -> str:
     return "\n".join(lines + ["", _check_note(config, results)] + shown) + "\n"
 
 
-PAPER_FIELDS = ("scenario", "fusion.growth")
+PAPER_FIELDS = ("fusion.growth",)  # beside the scenario
 PAPER_NOTE = ("The paper's columns are left empty: this configuration's scenario or growth "
               "is not the paper's.")
 
 
 def _paper(config) -> dict:
     """The paper's values by row, or none when config is not the paper's setting."""
-    return PAPER if configs.paper_setting("table1", config, PAPER_FIELDS) else {}
+    return PAPER if configs.paper_setting("table1", config, scenario, PAPER_FIELDS) else {}
 
 
 def _check_note(config, results) -> str:

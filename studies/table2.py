@@ -240,14 +240,14 @@ def _markdown(config, rows, results) -> str:
     return "\n".join(lines + shown) + "\n"
 
 
-PAPER_FIELDS = ("scenario", "network", "fusion", "metrics")
+PAPER_FIELDS = ("network", "fusion", "metrics")  # beside the scenario
 PAPER_NOTE = ("The paper's columns are left empty: this configuration's scenario, network, "
               "growth or metrics are not the paper's.")
 
 
 def _paper(config) -> dict:
     """The paper's values by row, or none when config is not the paper's setting."""
-    return PAPER if configs.paper_setting("table2", config, PAPER_FIELDS) else {}
+    return PAPER if configs.paper_setting("table2", config, scenario, PAPER_FIELDS) else {}
 
 
 MEASURED = {"target": dict(marker="o", ms=2.2, color="tab:blue", ls="none",

@@ -350,10 +350,16 @@ def test_a_config_files_own_quick_table_applies_with_quick_only(tmp_path):
     assert quick["runs"] == 3 and quick["scenario"]["n_steps"] == 20
     assert quick["scenario"]["dt"] == configs.load("table1")["scenario"]["dt"]
     for text, message in (("quick = 3\n", "quick must be a table ([quick]), got 3"),
-                          ("[quick]\nrunz = 3\n", "[quick] unknown field(s) ['runz']")):
+                          ("[quick]\nrunz = 3\n", "[quick] has unknown field(s) ['runz']"),
+                          ("[quick.scenario]\nn_stepz = 3\n",  # fuzz Q3: passed without
+                           "[quick.scenario] has unknown field(s) ['n_stepz']")):  # --quick
         path.write_text(text)
-        with pytest.raises(configs.ConfigError, match=re.escape(message)):
-            configs.load("table1", quick=True, path=path)
+        for quick in (False, True):
+            with pytest.raises(configs.ConfigError, match=re.escape(message)):
+                configs.load("table1", quick=quick, path=path)
+    path.write_text('[quick.network.neighbours]\n"8" = [1, 2]\n')  # named entries: any name
+    assert configs.load("table2", quick=True, path=path)["network"]["neighbours"] == \
+        {"8": [1, 2]}
 
 
 def test_a_table_of_named_entries_is_replaced_whole_and_others_merge(tmp_path):
@@ -413,3 +419,15 @@ def test_the_paper_values_are_shown_beside_the_paper_setting_only(name, field, v
     table, key = field.split(".")
     config[table] = config[table] | {key: value}
     assert module._paper(config) == {}
+
+
+@pytest.mark.parametrize("name", ["table1", "table2"])
+def test_a_scenario_field_written_at_its_default_is_still_the_papers_setting(name):
+    """Fields the shipped file leaves to the scenario's defaults, written out at those
+    defaults, run the paper's setting bit for bit: its values stay beside it (fuzz Q4)."""
+    module = _module(name)
+    config = configs.load(name)
+    built = module.scenario(config)
+    config["scenario"] = config["scenario"] | {
+        "region": [list(r) for r in built.region], "truth_process_noise": False}
+    assert module.scenario(config) == built and module._paper(config) == module.PAPER
