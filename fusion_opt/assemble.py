@@ -75,6 +75,7 @@ from .factored import (
     value,
     verify_work,
     vertex_error,
+    vertex_gap,
     work,
 )
 from .linalg import SMALL, apply_qt, copy, fill, inline, jit, matmul_t, pow2, small_mul_t
@@ -113,7 +114,7 @@ def assemble_one(F, means, covs, q, E, k, vertex, pnorm, w, trace: bool, mean, c
     if j >= 0:
         fill(w, 0.0)
         w[j] = 1.0
-        _vertex(F, means[j], covs[j], q[j], E[j], k, vertex[j], w, At, Vt, R, Ri, P, B, g,
+        _vertex(F, j, means[j], covs, q, E, k, vertex[j], w, At, Vt, R, Ri, P, B, g, eta,
                 trace, mean, cov, stats)
     else:
         _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
@@ -199,16 +200,19 @@ def _improves_on(F, w, j, covs, q, E, k, eta, trace: bool) -> bool:
 
 
 @jit
-def _vertex(F, m_j, P_j, q_j, E_j, k, vertex_j, w, At, Vt, R, Ri, P, B, g, trace, mean, cov,
-            stats):
+def _vertex(F, j, m_j, covs, q, E, k, vertex_j, w, At, Vt, R, Ri, P, B, g, eta, trace, mean,
+            cov, stats):
     """Node j's own estimate (mean, its modified covariance as given) and the certificate
-    at e_j."""
-    n = m_j.size
+    at e_j: the larger of the factors' and `factored.vertex_gap`'s, which holds for the
+    covariances as given. Allocates the latter's buffers (a vertex result only)."""
+    N, n = F.shape[0], m_j.size
     copy(mean, m_j)
-    scaled(P_j, q_j, E_j, cov)  # sym(P_j) / s_j in the original units
+    scaled(covs[j], q[j], E[j], cov)  # sym(P_j) / s_j in the original units
     evaluate_at(F, w, At, Vt, R, Ri, trace)
     gradient_at(F, Ri, P, B, g, trace)
-    gp = gap(g, w)
+    for i in range(N):
+        eta[i] = _scale_error(q[i], E[i], N)
+    gp = max(gap(g, w), vertex_gap(F, j, covs, q, E + k, eta, trace, verify_work(n)))
     if trace:
         stats[0] = np.trace(cov)
         stats[1], stats[2] = np.ldexp(gp, k), gp / abs(vertex_j[0])

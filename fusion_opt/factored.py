@@ -331,6 +331,94 @@ def improvement(F, w, j, covs, q, shift, eta, trace: bool, v: Verify):
 
 
 @jit
+def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
+    """An upper bound, at first order, on the certificate at the vertex e_j for the
+    covariances as given (divided by the exact detection scales q 2^shift; eta (N,) bounds
+    each scale's relative error), in scaled units: max(0, max_i (g_j - g_i + beta_i)) with
+
+        logdet:  g_j - g_i = tr(Y_i D_i),        trace:  g_j - g_i = tr(Y_i D_i P_j),
+
+    D_i = P_j - P_i formed from the inputs, whose rounding is relative to D_i itself (a
+    difference is correctly rounded), and Y_i from node i's factor F_i. The certificate
+    from the factors (`gap`) holds for covariances within their Cholesky's backward error,
+    which at condition 1e10 moved a log det by more than two nodes 1e-7 apart differ:
+    the worse node came back with a gap of 0, 4e-7 nats short (fuzz Q1). Here F_i's error
+    multiplies D_i: beta_i counts the rounding of D_i; the inputs' own (a detection scale,
+    an asymmetric input: eta_i + 2 eps of |P_i|, none for a symmetric BCI input); F_i as
+    the inverse Cholesky factor of P_i (C_i C_i^T = P_i + E_i, |E_i| <= (n + 3) eps
+    |C_i| |C_i|^T, F_i = C_i^-1 (I + R_i), |R_i| <= n eps |C_i| |F_i|: dY_i = -Y_i E_i
+    Y_i + R_i^T Y_i + Y_i R_i); and the products; doubled, as `improvement`'s bound. inf
+    when a Cholesky factor cannot be formed."""
+    N, n = F.shape[0], F.shape[1]
+    u = _EPS
+    Sj, S, D, Ci = v.U2, v.S, v.Sig, v.Ci
+    scaled(covs[j], q[j], shift[j], Sj)
+    cj = _input_error(covs[j], q[j], eta[j])
+    top = 0.0
+    for i in range(N):
+        if i == j:
+            continue
+        scaled(covs[i], q[i], shift[i], S)
+        if not cholesky(S, Ci):
+            return np.inf
+        ci = _input_error(covs[i], q[i], eta[i])
+        for a in range(n):
+            for b in range(n):
+                D[a, b] = Sj[a, b] - S[a, b]
+        _tmul(F[i], F[i], v.G)        # Y_i
+        matmul(v.G, D, v.H)           # Y_i D_i
+        _absmul(Ci, F[i], v.Eb)       # |C_i| |F_i|, bounds |R_i| / (n eps)
+        if trace:
+            matmul(v.H, Sj, v.K)      # Y_i D_i P_j
+            delta = 0.0
+            for a in range(n):
+                delta += v.K[a, a]
+            matmul(v.G, Sj, v.V)      # Y_i P_j
+            err = u * _inner_abs(D, v.V)                                   # D_i
+            matmul(D, v.G, v.T)       # D_i Y_i
+            err += cj * (_inner_abs(Sj, v.V) + _inner_abs(Sj, v.T)) \
+                + ci * _inner_abs(S, v.V)                                  # the inputs
+            matmul(v.K, v.G, v.T)     # Y_i D_i P_j Y_i
+            err += (n + 3) * u * _inner_abs_cct(Ci, _abs_into(v.T))       # E_i
+            matmul(v.V, D, v.T)       # Y_i P_j D_i
+            err += n * u * (_inner_abs(v.Eb, v.K) + _inner_abs(v.Eb, v.T))  # R_i
+            _absmul(F[i], D, v.T)
+            _absmul(v.T, Sj, v.V)
+            err += (n * n + 3 * n) * u * _inner_abs(v.V, F[i])             # products
+        else:
+            delta = 0.0
+            for a in range(n):
+                delta += v.H[a, a]
+            err = u * _inner_abs(D, v.G) + (cj * _inner_abs(Sj, v.G)       # D_i, inputs
+                                            + ci * _inner_abs(S, v.G))
+            matmul(v.H, v.G, v.T)     # Y_i D_i Y_i
+            err += (n + 3) * u * _inner_abs_cct(Ci, _abs_into(v.T))       # E_i
+            err += 2 * n * u * _inner_abs(v.Eb, v.H)                       # R_i
+            _absmul(F[i], D, v.T)
+            err += (n * n + 2 * n) * u * _inner_abs(v.T, F[i])             # products
+        bound = 2.0 * err + (n + 3) * 5e-324 * n * n
+        if not np.isfinite(delta + bound):
+            return np.inf
+        top = max(top, delta + bound)
+    return top
+
+
+@jit
+def _input_error(P, q, eta) -> float:
+    """The relative error of a node's scaled covariance sym(P) / q 2^shift against the
+    exact one: none for a symmetric input without a scale; else its scale's eta and the
+    rounding of the division and of the symmetrisation."""
+    if q != 1.0 or eta != 0.0:
+        return eta + 2 * _EPS
+    n = P.shape[0]
+    for a in range(n):
+        for b in range(a):
+            if P[a, b] != P[b, a]:
+                return 2 * _EPS
+    return 0.0
+
+
+@jit
 def _trace_difference(Fj, C, wj, v: Verify):
     """D = -tr(K M^-1 Sigma), K = C^T C, and the bound on the rounding from Sigma on (before
     the factor 2 of `improvement`); leaves in v.G the sensitivity to node j's covariance,
