@@ -31,6 +31,8 @@ g_i = -zeta . z_i, with
     logdet:  z_i = vec(X_i),                zeta = vec(I),               z(w) = zeta
     trace:   z_i = sqrt(2) vec(R^-1 X_i),   zeta = vec(R^-1) / sqrt(2),  z(w) = 2 zeta
 
+(the SQP takes the "logdet" model in svec form, n (n + 1) / 2 coordinates: `model_view`)
+
 (for "trace", H_ij = 2 tr(P Y_i P Y_j P) = 2 tr(X_i D X_j) with D = R^-T R^-1, and the
 factor R^-T of D gives the Gram form without an eigendecomposition).
 
@@ -619,19 +621,46 @@ def _sum_abs(A) -> float:
 @jit
 def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
     """The SQP model at the point factored into Ri: g the gradient, and the columns
-    d_i = W z_i - (rho c + 1/rho) zeta of the nearest-point problem in Et[i, :n^2]
-    (W = I - (1 - rho) u u^T, u = zeta / |zeta|; backends/newton.py); B, X, S are n x n
-    scratch."""
+    d_i = W z_i - (rho c + 1/rho) zeta of the nearest-point problem in Et[i, :m]
+    (W = I - (1 - rho) u u^T, u = zeta / |zeta|; backends/newton.py), Et[i, m] = 1; B, X, S
+    are n x n scratch. m = Et.shape[1] - 1 is n^2 (z_i as in the module docstring) or, for
+    "logdet" only, n (n + 1) / 2 (`model_view`): X_i is symmetric, and z_i = svec(X_i), its
+    upper triangle with the entries off the diagonal times sqrt(2) (the diagonal first),
+    has the same Gram matrix in fewer coordinates (at (n, N) = (6, 16) the nearest point
+    in 22 instead of 37 dimensions)."""
     N, n = F.shape[0], F.shape[1]
-    m = n * n
+    m = Et.shape[1] - 1
     c = 2.0 if trace else 1.0
+    small = n <= SMALL
+    if not trace and m < n * n:
+        for i in range(N):
+            if small:
+                node_mul(F, i, Ri, B, True)
+                small_gram(B, X)
+            else:
+                matmul(F[i], Ri, B)
+                gram(B, X)
+            gi = 0.0
+            for a in range(n):
+                gi -= X[a, a]
+            g[i] = gi
+            # zeta = svec(I): |zeta|^2 = n; as below
+            shift = (1.0 - rho) / n * gi - (rho * c + 1.0 / rho)
+            for a in range(n):
+                Et[i, a] = X[a, a] + shift
+            p = n
+            for a in range(n):
+                for b in range(a + 1, n):
+                    Et[i, p] = _SQRT2 * X[a, b]
+                    p += 1
+            Et[i, m] = 1.0
+        return
     zz = 0.0
     for a in range(n):
         for b in range(n):
             z = Ri[a, b] / _SQRT2 if trace else (1.0 if a == b else 0.0)
             zeta[a * n + b] = z
             zz += z * z
-    small = n <= SMALL
     for i in range(N):
         if small:
             node_mul(F, i, Ri, B, True)
@@ -658,6 +687,18 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
         shift = (1.0 - rho) / zz * gi - (rho * c + 1.0 / rho)
         for p in range(m):
             Et[i, p] += zeta[p] * shift
+        Et[i, m] = 1.0
+
+
+@jit
+def model_view(Et, N: int, n: int, trace: bool):
+    """The rows of the nearest-point problem that `model_at` fills: Et (N, n^2 + 1) itself
+    for "trace", for "logdet" its first N (n (n + 1) / 2 + 1) entries as an (N, n (n + 1) /
+    2 + 1) array (svec; a view, contiguous, so the same compiled kernels)."""
+    if trace:
+        return Et
+    ms = n * (n + 1) // 2
+    return Et.reshape(Et.size)[:N * (ms + 1)].reshape((N, ms + 1))
 
 
 @jit

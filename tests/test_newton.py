@@ -62,6 +62,28 @@ def test_model_has_the_gradient_and_hessian_of_criteria(kind, criterion):
     assert np.allclose(A @ A.T, H, rtol=1e-8, atol=1e-10 * np.abs(H).max())
 
 
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("rho", (0.1, 1.0))
+def test_logdet_model_in_svec_form_has_the_same_gram_and_gradient(kind, rho):
+    """The SQP's "logdet" model (factored.model_view: n (n + 1) / 2 coordinates) has the
+    gradient and the Gram matrix of the nearest-point rows of the vec model."""
+    n, N = 4, 7
+    covs = instance(np.random.default_rng(8), N, n, kind)
+    F, _ = _factors(covs)
+    w = np.random.default_rng(9).dirichlet(np.ones(N))
+    ws = work(N, n)
+    assert factor_at(F, w, ws)[1]
+    model(F, ws, False, rho)
+    g, E = ws.g.copy(), ws.Et.copy()
+    Ev = factored.model_view(ws.Et, N, n, False)
+    assert Ev.shape == (N, n * (n + 1) // 2 + 1)
+    factored.model_at(F, ws.Ri, ws.zeta, Ev, ws.g, ws.B, ws.X, ws.S, False, rho)
+    assert np.array_equal(ws.g, g)
+    assert np.all(Ev[:, -1] == 1.0)
+    G, Gv = E @ E.T, Ev @ Ev.T
+    assert np.allclose(Gv, G, rtol=1e-13, atol=1e-13 * np.abs(G).max())
+
+
 def test_nearest_point_matches_cvxpy():
     rng = np.random.default_rng(6)
     for N, n in ((5, 1), (12, 2), (40, 3)):
@@ -215,7 +237,7 @@ def test_design_steps_are_the_multiplicative_algorithm(kind):
     F, k = _factors(covs)
     ws = work(5, 3)
     w = np.full(5, 0.2)
-    newton._design_steps(F, w, 2, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g)
+    newton._design_steps(F, w, 2, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g, True)
     Ys = np.linalg.inv(covs)
     ref, f = np.full(5, 0.2), [objective(covs, np.full(5, 0.2), "trace")]
     for _ in range(2):
@@ -227,6 +249,22 @@ def test_design_steps_are_the_multiplicative_algorithm(kind):
     assert np.allclose(w, ref, rtol=0, atol=1e-14 * np.linalg.cond(covs).max())
     assert (w > 0).all() and abs(w.sum() - 1.0) <= 8 * np.finfo(float).eps
     assert f[2] < f[1] < f[0]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_logdet_design_step_is_the_multiplicative_algorithm(kind):
+    """The "logdet" start: one step w_i <- w_i tr(P Y_i) / n from uniform weights, against
+    the same step from inverted covariances in numpy."""
+    covs = instance(np.random.default_rng(12), 5, 3, kind)
+    F, _ = _factors(covs)
+    ws = work(5, 3)
+    w = np.full(5, 0.2)
+    newton._design_steps(F, w, 1, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g, False)
+    Ys = np.linalg.inv(covs)
+    P = np.linalg.inv(np.einsum("i,iab->ab", np.full(5, 0.2), Ys))
+    ref = 0.2 * np.einsum("ab,iba->i", P, Ys) / 3
+    assert np.allclose(w, ref, rtol=0, atol=1e-14 * np.linalg.cond(covs).max())
+    assert (w > 0).all() and abs(w.sum() - 1.0) <= 8 * np.finfo(float).eps
 
 
 def test_an_optimum_at_a_node_is_that_node_exactly_after_design_steps():
