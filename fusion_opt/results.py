@@ -110,11 +110,12 @@ class FusionResult:
     log det(cov) ("logdet"); gap the optimality certificate at `weights`,
     g(w).w - min_i g_i(w) with g the gradient of the objective (so f(w) - f* <= gap by
     convexity), in the objective's units (0 for rules without an optimisation). At a
-    single node (a vertex) it bounds the certificate for the covariances as given
-    (`factored.vertex_gap`); a fused result's comes from the nodes' Cholesky factors and
-    holds for covariances within their rounding, (n + 3) eps |C_i| |C_i|^T of those given
-    (P_i = C_i C_i^T), which moves it negligibly for "trace" and by up to about
-    n^2 eps cond(P_i) nats for "logdet";
+    single node (a vertex) it bounds the certificate for the covariances as fused,
+    sym(P_i) / s_i as rounded (the inputs themselves when symmetric, for ci and bci), the
+    scales' own error counted (`factored.vertex_gap`); a fused result's comes from the
+    nodes' Cholesky factors and holds for covariances within their rounding, (n + 3) eps
+    |C_i| |C_i|^T of those given (P_i = C_i C_i^T), which moves it negligibly for "trace"
+    and by up to about n^2 eps cond(P_i) nats for "logdet";
     status a `Status`; backend the weight solver; solve_time the wall time of the weight
     solve in seconds (solver and polish); iterations the solver's, polish_iterations those
     of the Newton polish.

@@ -158,3 +158,22 @@ def test_a_vertex_certificate_holds_for_the_covariances_as_given(criterion):
             honest += 1
             assert r.status == fo.Status.OPTIMAL_INACCURATE and certificate <= exact * 1.001
     assert vertices > 60 and (trace or honest > 5)
+
+
+def test_mbci_nodes_alike_come_back_optimal_at_any_condition():
+    """Identical MBCI nodes (scales of 0.3, 0.7: not 1), an input asymmetric by rounding
+    too: the exact certificate is 0. Charged entry by entry, the rounding of the scaled
+    covariances (eps cond in log det) marked them OPTIMAL_INACCURATE from condition 1e4
+    and sent each to a Clarabel re-solve (fuzz R); a scale's error is a factor on a whole
+    covariance, and so counted, they are OPTIMAL at every condition to 1e12."""
+    rng = np.random.default_rng(114)
+    n, N = 4, 3
+    for exponent in (2, 4, 6, 8, 10, 12):
+        Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+        P = (Q * np.logspace(0, exponent, n)) @ Q.T  # asymmetric by rounding
+        for criterion in CRITERIA:
+            r = fo.mbci(np.zeros((N, n)), np.array([P] * N), np.full(N, 0.3), np.full(N, 0.7),
+                        criterion)
+            assert r.status == fo.Status.OPTIMAL and (r.weights == 1.0).any()
+            scale = abs(r.objective) if criterion == "trace" else 1.0
+            assert r.gap / scale <= 1e-12
