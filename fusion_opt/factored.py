@@ -376,9 +376,7 @@ def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
         _absmul(Ci, F[i], v.Eb)       # |C_i| |F_i|, bounds |R_i| / (n eps)
         if trace:
             matmul(v.H, Sj, v.K)      # Y_i D_i P_j
-            delta = 0.0
-            for a in range(n):
-                delta += v.K[a, a]
+            delta = _trace(v.K)
             matmul(v.G, Sj, v.V)      # Y_i P_j
             err = u * _inner_abs(D, v.V)                                   # D_i
             err += (eta[i] + 2.0 * eta[j]) * abs(delta + _trace(Sj)) \
@@ -391,9 +389,7 @@ def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
             _absmul(v.T, Sj, v.V)
             err += (n * n + 3 * n) * u * _inner_abs(v.V, F[i])             # products
         else:
-            delta = 0.0
-            for a in range(n):
-                delta += v.H[a, a]
+            delta = _trace(v.H)
             err = u * _inner_abs(D, v.G) \
                 + (eta[i] + eta[j]) * abs(delta + n)                       # D_i, the scales
             matmul(v.H, v.G, v.T)     # Y_i D_i Y_i
@@ -630,12 +626,7 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
     small = n <= SMALL
     if not trace and m < n * n:
         for i in range(N):
-            if small:
-                node_mul(F, i, Ri, B, True)
-                small_gram(B, X)
-            else:
-                matmul(F[i], Ri, B)
-                gram(B, X)
+            _whitened(F, i, Ri, B, X, small)
             gi = 0.0
             for a in range(n):
                 gi -= X[a, a]
@@ -658,12 +649,7 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
             zeta[a * n + b] = z
             zz += z * z
     for i in range(N):
-        if small:
-            node_mul(F, i, Ri, B, True)
-            small_gram(B, X)
-        else:
-            matmul(F[i], Ri, B)
-            gram(B, X)
+        _whitened(F, i, Ri, B, X, small)
         Z = X
         if trace:
             if small:
@@ -695,6 +681,17 @@ def model_view(Et, N: int, n: int, trace: bool):
         return Et
     ms = n * (n + 1) // 2
     return Et.reshape(Et.size)[:N * (ms + 1)].reshape((N, ms + 1))
+
+
+@jit
+def _whitened(F, i, Ri, B, X, small: bool):
+    """X = B^T B, B = F_i R^-1: node i whitened at the point factored into Ri."""
+    if small:
+        node_mul(F, i, Ri, B, True)
+        small_gram(B, X)
+    else:
+        matmul(F[i], Ri, B)
+        gram(B, X)
 
 
 @jit

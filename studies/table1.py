@@ -159,10 +159,11 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     """table1.md, its tables as table1.csv and table1_paired.csv, and the figures of run
     FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, ROWS, COLUMNS)
-    stats.write_csv(out / "table1.csv", rows, COLUMNS, _paper(config), ("paper_mse", "paper_mncm"))
+    paper = _paper(config)  # the paper's values, or none beside another setting
+    stats.write_csv(out / "table1.csv", rows, COLUMNS, paper, ("paper_mse", "paper_mncm"))
     stats.write_rows(out / "table1_paired.csv",
                      [{"measure": col, **p} for col, p in _paired(results).items()])
-    (out / "table1.md").write_text(_markdown(config, rows, results))
+    (out / "table1.md").write_text(_markdown(config, rows, results, paper))
     if figure is not None:
         _figures(config, figure, out)
 
@@ -173,7 +174,7 @@ def _paired(results) -> dict:
                               [r["CI"][col] for r in results]) for col in COLUMNS[:4]}
 
 
-def _markdown(config, rows, results) -> str:
+def _markdown(config, rows, results, paper: dict) -> str:
     n = len(results)
     lines = [f"# Table 1 ({n} runs, seed {config['seed']}, backend {config['backend']})", "",
              "Mean and 95% interval over runs. MSE: mean over time of the squared error norm; "
@@ -182,7 +183,7 @@ def _markdown(config, rows, results) -> str:
              "| row | MSE full | paper MSE | MNCM full | paper MNCM | MSE pos | MNCM pos "
              "| ANEES (4-dof) |", "|---|---|---|---|---|---|---|---|"]
     for row, cols in rows.items():
-        p_mse, p_mncm = _paper(config).get(row, (None, None))
+        p_mse, p_mncm = paper.get(row, (None, None))
         cells = [stats.fmt(*cols[c]) for c in COLUMNS]
         lines.append(f"| {row} | {cells[0]} | {p_mse or '-'} | {cells[1]} | {p_mncm or '-'} "
                      f"| {cells[2]} | {cells[3]} | {cells[4]} |")
@@ -192,7 +193,7 @@ def _markdown(config, rows, results) -> str:
     for col, p in _paired(results).items():
         lines.append(f"| {col} | {stats.fmt(p['mean_diff'], p['low'], p['high'], 3)} "
                      f"| {p['share_better']:.2f} |")
-    shown = [] if _paper(config) else ["", PAPER_NOTE]
+    shown = [] if paper else ["", PAPER_NOTE]
     return "\n".join(lines + ["", _check_note(config, results)] + shown) + "\n"
 
 

@@ -195,13 +195,14 @@ def report(config: dict, results: list[dict], out: Path, figure: dict | None) ->
     """table2.md, its tables as table2.csv and table2_paired.csv, and the figures of run
     FIGURE_RUN from its figure data (none if that run is not stored)."""
     rows = stats.summarise(results, results[0], COLUMNS)
-    stats.write_csv(out / "table2.csv", rows, COLUMNS, _paper(config),
+    paper = _paper(config)  # the paper's values, or none beside another setting
+    stats.write_csv(out / "table2.csv", rows, COLUMNS, paper,
                     ("paper_mse_e-3", "paper_mncm"))
     stats.write_rows(out / "table2_paired.csv",
                      [{"node": proc, "measure": key, **p}
                       for proc, pair in _paired(config, results).items()
                       for key, p in pair.items()])
-    (out / "table2.md").write_text(_markdown(config, rows, results))
+    (out / "table2.md").write_text(_markdown(config, rows, results, paper))
     if figure is not None:
         _figures(config, figure, out)
 
@@ -214,7 +215,7 @@ def _paired(config, results) -> dict:
             for proc in config["network"]["neighbours"]}
 
 
-def _markdown(config, rows, results) -> str:
+def _markdown(config, rows, results, paper: dict) -> str:
     lines = [f"# Table 2 ({len(results)} runs, seed {config['seed']}, backend "
              f"{config['backend']}, association {config['network']['association']})", "",
              "Mean and 95% interval over runs; MSE and MNCM summed over the targets matched "
@@ -223,7 +224,7 @@ def _markdown(config, rows, results) -> str:
              "| node | MSE | paper MSE (x1e-3) | MNCM | paper MNCM | MSE pos | MNCM pos | OSPA "
              "| GOSPA | card. error |", "|---" * 10 + "|"]
     for row, cols in rows.items():
-        p_mse, p_mncm = _paper(config).get(row, ("-", "-"))
+        p_mse, p_mncm = paper.get(row, ("-", "-"))
         c = [stats.fmt(*cols[k]) for k in COLUMNS]
         lines.append(f"| {row} | {c[0]} | {p_mse} | {c[1]} | {p_mncm} | "
                      + " | ".join(c[2:]) + " |")
@@ -236,7 +237,7 @@ def _markdown(config, rows, results) -> str:
         lines.append(f"| {proc} | {stats.fmt(pm['mean_diff'], pm['low'], pm['high'], 3)} | "
                      f"{share} | "
                      f"{stats.fmt(pc['mean_diff'], pc['low'], pc['high'], 3)} |")
-    shown = [] if _paper(config) else ["", PAPER_NOTE]
+    shown = [] if paper else ["", PAPER_NOTE]
     return "\n".join(lines + shown) + "\n"
 
 
