@@ -114,8 +114,8 @@ def assemble_one(F, means, covs, q, E, k, vertex, pnorm, w, trace: bool, mean, c
     if j >= 0:
         fill(w, 0.0)
         w[j] = 1.0
-        _vertex(F, j, means[j], covs, q, E, k, vertex[j], w, At, Vt, R, Ri, P, B, g, eta,
-                trace, mean, cov, stats)
+        _vertex(F, j, means[j], covs, q, E, k, vertex[j], pnorm, w, At, Vt, R, Ri, P, B, g,
+                eta, trace, mean, cov, stats)
     else:
         _interior(F, means, k, w, Vt, R, Ri, P, B, g, rhs, trace, mean, cov, stats,
                   state == GRADED)
@@ -200,11 +200,11 @@ def _improves_on(F, w, j, covs, q, E, k, eta, trace: bool) -> bool:
 
 
 @jit
-def _vertex(F, j, m_j, covs, q, E, k, vertex_j, w, At, Vt, R, Ri, P, B, g, eta, trace, mean,
-            cov, stats):
+def _vertex(F, j, m_j, covs, q, E, k, vertex_j, pnorm, w, At, Vt, R, Ri, P, B, g, eta, trace,
+            mean, cov, stats):
     """Node j's own estimate (mean, its modified covariance as given) and the certificate
     at e_j: the larger of the factors' and `factored.vertex_gap`'s, which holds for the
-    covariances as given. Allocates the latter's buffers (a vertex result only)."""
+    covariances as given."""
     N, n = F.shape[0], m_j.size
     copy(mean, m_j)
     scaled(covs[j], q[j], E[j], cov)  # sym(P_j) / s_j in the original units
@@ -212,7 +212,7 @@ def _vertex(F, j, m_j, covs, q, E, k, vertex_j, w, At, Vt, R, Ri, P, B, g, eta, 
     gradient_at(F, Ri, P, B, g, trace)
     for i in range(N):
         eta[i] = _scale_error(q[i], E[i], N)
-    gp = max(gap(g, w), vertex_gap(F, j, covs, q, E + k, eta, trace, verify_work(n)))
+    gp = max(gap(g, w), vertex_gap(F, j, covs, q, E + k, eta, g, pnorm, trace))
     if trace:
         stats[0] = np.trace(cov)
         stats[1], stats[2] = np.ldexp(gp, k), gp / abs(vertex_j[0])

@@ -333,7 +333,7 @@ def improvement(F, w, j, covs, q, shift, eta, trace: bool, v: Verify):
 
 
 @jit
-def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
+def vertex_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool) -> float:
     """An upper bound, at first order, on the certificate at the vertex e_j for the
     covariances as given (divided by the exact detection scales q 2^shift; eta (N,) bounds
     each scale's relative error), in scaled units: max(0, max_i (g_j - g_i + beta_i)) with
@@ -355,15 +355,27 @@ def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
     rounded (exact for a symmetric input without a detection scale): charged entry by
     entry, that rounding (eps |P_i|, first order like the Cholesky's) would cost eps cond
     in log det, and marked 75-80 % of MBCI results at condition >= 1e4 inaccurate whose
-    exact certificate was below 1e-12 (fuzz R). inf when a Cholesky factor cannot be
-    formed."""
+    exact certificate was below 1e-12 (fuzz R). A node that the factors' own gradient g
+    (N,) at e_j already shows no better (`_settled`, from pnorm (N,), the covariances'
+    Frobenius norms) is not formed: most nodes of most vertex results, which then allocate
+    nothing. inf when a Cholesky factor cannot be formed."""
+    for i in range(F.shape[0]):
+        if i != j and not _settled(F, g, pnorm, eta, i, j):
+            return _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace,
+                               verify_work(F.shape[1]))
+    return 0.0
+
+
+@jit
+def _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> float:
+    """`vertex_gap` over the nodes not `_settled`, in the buffers v."""
     N, n = F.shape[0], F.shape[1]
     u = _EPS
     Sj, S, D, Ci = v.U2, v.S, v.Sig, v.Ci
     scaled(covs[j], q[j], shift[j], Sj)
     top = 0.0
     for i in range(N):
-        if i == j:
+        if i == j or _settled(F, g, pnorm, eta, i, j):
             continue
         scaled(covs[i], q[i], shift[i], S)
         if not cholesky(S, Ci):
@@ -402,6 +414,32 @@ def vertex_gap(F, j, covs, q, shift, eta, trace: bool, v: Verify) -> float:
             return np.inf
         top = max(top, delta + bound)
     return top
+
+
+@jit
+def _settled(F, g, pnorm, eta, i: int, j: int) -> bool:
+    """Whether node i is verifiably no better than node j at the vertex e_j by the
+    factors' gradient g alone: g_j - g_i + beta < 0, beta a first-order bound on the error
+    of that difference for the covariances as fused. The factors are exact for covariances
+    within E (Cholesky, |E| <= (n + 3) eps |C| |C|^T) and R (inversion, n eps |C| |F|),
+    the QR of F_j is exact for F_j + dA (|dA| <= c n^2 eps |F_j|), the triangular inverse
+    and the products round by c n eps componentwise; each moves g_i by at most
+    c n^2 eps kappa |g_i| ("logdet": g_i = -tr(Y_i P_j), e.g. |tr(Y_i E_i Y_i P_j)| <=
+    |E_i| |Y_i| |g_i|; "trace": g_i = -tr(P_j Y_i P_j) in the same way, P_j twice) and
+    g_j by as much of |g_j|, with kappa = sqrt(n) (|P_i|_F |F_i|_F^2 + |P_j|_F |F_j|_F^2)
+    >= cond(P_i) + cond(P_j); each scale's error eta moves them by at most 2 eta
+    (|g_i| + |g_j|). beta = (16 (n + 3)^2 eps kappa + 4 (eta_i + eta_j)) (|g_i| + |g_j|),
+    several times the sum of those terms. Only where first order holds (16 (n + 3)^2 eps
+    kappa <= 1e-2) and nothing is near underflow (|F|_F^2 <= 1e280, so that an absolute
+    rounding of 1e-323 is negligible beside the covariances' least eigenvalue; |g| >=
+    1e-280); else False (`vertex_gap` forms the difference)."""
+    n = F.shape[1]
+    fi, fj = sumsq(F[i]), sumsq(F[j])
+    rel = 16.0 * (n + 3) ** 2 * _EPS * np.sqrt(n) * (pnorm[i] * fi + pnorm[j] * fj)
+    gi, gj = abs(g[i]), abs(g[j])
+    if not (rel <= 1e-2 and fi <= 1e280 and fj <= 1e280 and min(gi, gj) >= 1e-280):
+        return False
+    return g[j] - g[i] + (rel + 4.0 * (eta[i] + eta[j])) * (gi + gj) < 0.0
 
 
 @jit
