@@ -185,7 +185,7 @@ def _before(vertex, a: int, b: int, col: int) -> bool:
 def _scale_error(q, E, N) -> float:
     """A bound on the relative error of a node's detection scale q 2^E against the exact
     s_i (`detection.py`: a product of N terms, or from logs where it underflows); 0 when
-    there is no scale (BCI, or s = 1 exactly)."""
+    there is no scale (BCI, or s = 1, which `detection._split` gives only for an exact 1)."""
     if q == 1.0 and E == 0:
         return 0.0
     return (2 * N + 8 + 2 * abs(E)) * _EPS

@@ -9,7 +9,8 @@ two). The expected information of the paper's mixed game scales each Y_i by
 and MBCI is CI/BCI on Yhat_i = s_i Y_i (Phat_i = P_i / s_i >= P_i, so it stays consistent).
 The core applies the scales to the covariances as s_i = q_i 2^E_i (q_i in [1, 2), E_i an
 integer; `detection_split`), so that chi = 1 gives s = 1 exactly (p + (1 - p) is 1.0 in
-floating point for every p) and MBCI equals BCI bit for bit. Where the product underflows
+floating point for every p) and MBCI equals BCI bit for bit; s is 1 only where it is
+exactly 1 (an inexact scale that rounds to 1 is the double below). Where the product underflows
 (p = 0, chi = 1e-200, N = 3 gives 1e-600) the split comes from log2 s instead.
 """
 
@@ -127,6 +128,7 @@ def _refuse(p_detect, chi, n_nodes, growth):
 
 
 _BAD, _LOW = 1, 2
+_BELOW_ONE = 1.0 - 2.0**-53  # the double below 1
 
 
 @jit
@@ -136,7 +138,11 @@ def _split(p, v, growth: bool, q, E) -> int:
     for a p outside [0, 1] or a chi outside (0, 1] (growth below 1 or not finite), _LOW
     when a scale is below 2^-1000 (its product may have underflowed), else 0. The products
     over j != i are exclusive prefix times exclusive suffix (no division by t_i), in
-    numpy's order of operations before this was compiled, so the scales are unchanged."""
+    numpy's order of operations before this was compiled, so the scales are unchanged. A
+    scale below 1 that rounds to 1 (p or chi within about 1e-16 of 1) is the double below
+    1 instead, so that s = 1 (q = 1, E = 0) means an exact 1, which the certificate takes
+    as exact (`assemble._scale_error`; fuzz of stop 35: rounded to 1.0, the gap at a
+    vertex understated the exact certificate by up to 3e-16)."""
     R, N = q.shape
     pr, c, t, after = np.empty(N), np.empty(N), np.empty(N), np.empty(N)
     code = 0
@@ -157,11 +163,29 @@ def _split(p, v, growth: bool, q, E) -> int:
         for i in range(N):
             s = pr[i] + (1.0 - pr[i]) * c[i] * before * after[i]
             before *= t[i]
+            if s == 1.0 and not _exactly_one(pr, c, i):
+                s = _BELOW_ONE
             if s < 2.0**-1000:
                 code = _LOW
             mant, ex = math.frexp(s)
             q[r, i], E[r, i] = 2.0 * mant, ex - 1
     return code
+
+
+@jit
+def _exactly_one(p, c, i: int) -> bool:
+    """Whether s_i = p_i + (1 - p_i) chi_i prod_{j != i} t_j is exactly 1 for the float p
+    and chi (N,): p_i = 1, or chi_i = 1 and every other t_j = p_j + (1 - p_j) chi_j is 1
+    (p_j = 1 or chi_j = 1). chi = 1 / growth is 1 only for growth = 1, where the rounded
+    c is 1 too: 1 / (1 + 2^-52) rounds to 1 - 2^-52."""
+    if p[i] == 1.0:
+        return True
+    if c[i] != 1.0:
+        return False
+    for j in range(p.size):
+        if j != i and p[j] != 1.0 and c[j] != 1.0:
+            return False
+    return True
 
 
 def _checked(p_detect, chi, n_nodes, growth) -> tuple[np.ndarray, np.ndarray]:

@@ -134,3 +134,47 @@ def test_a_spread_made_by_the_detection_scales_names_them():
     with pytest.raises(fo.FusionInputError, match="divided by their detection scales"):
         fo.mbci([[1.0, 0.0], [0.0, 1.0], [5.0, 5.0]], np.stack([eye, 2 * eye, 3 * eye]),
                 [1.0, 0.0, 0.0], 1e-300)
+
+
+def test_a_scale_is_one_only_when_it_is_exactly_one():
+    """s = 1 (what the certificate takes as an exact scale) only where p_i = 1, or chi_i = 1
+    with every other node's t_j = 1, in exact rational arithmetic; p and chi within a few
+    ulps of 1 made inexact scales round to 1.0 (fuzz of stop 35). Every scale is within
+    assemble's bound on its error, (2 N + 8) eps, of the exact one."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(116)
+    ulps = np.array([0.0, 2.0**-53, 2.0**-52, 3 * 2.0**-53])
+    ones, below = 0, 0
+    for _ in range(400):
+        N = int(rng.integers(1, 6))
+        p = 1.0 - rng.choice(ulps, N) * rng.choice([0.0, 1.0], N, p=[0.3, 0.7])
+        chi = 1.0 - rng.choice(ulps, N)
+        p[rng.random(N) < 0.2] = 0.5
+        s = fo.detection_scales(p, chi)
+        for i in range(N):
+            t = [Fraction(p[j]) + (1 - Fraction(p[j])) * Fraction(chi[j]) for j in range(N)]
+            exact = Fraction(p[i]) + (1 - Fraction(p[i])) * Fraction(chi[i]) * math.prod(
+                t[j] for j in range(N) if j != i)
+            assert (s[i] == 1.0) == (exact == 1), (p, chi, i)
+            assert abs(Fraction(s[i]) - exact) <= (2 * N + 8) * np.finfo(float).eps * exact
+            ones += s[i] == 1.0
+            below += s[i] < 1.0 and exact > Fraction(1) - Fraction(2) ** -52
+    assert ones > 100 and below > 100
+
+
+def test_a_vertex_gap_holds_where_a_scale_is_within_an_ulp_of_one():
+    """Two identical nodes whose exact scales 1 - 2^-55 and 1 - 2^-54 both rounded to 1.0:
+    node 1 came back OPTIMAL with a gap of 2e-323 though node 0 is better by 2.8e-17
+    (log det; the helper's reproducer). The gap now bounds the exact certificate."""
+    from decimal import Decimal
+
+    from test_fuzz import Exact, exact_scales
+
+    p, chi = np.array([0.5, 0.5]), np.array([1.0, float.fromhex("0x1.fffffffffffffp-1")])
+    covs = np.array([[[1.0]], [[1.0]]])
+    for criterion in ("trace", "logdet"):
+        r = fo.mbci(np.zeros((2, 1)), covs, p, chi, criterion)
+        exact = Exact(covs, exact_scales(p, chi, 2)).at(r.weights, criterion == "trace")[1]
+        certificate = r.gap / abs(r.objective) if criterion == "trace" else r.gap
+        assert exact > 0 and Decimal(certificate) >= exact, (criterion, r.weights, r.gap)
