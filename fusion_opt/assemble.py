@@ -191,7 +191,7 @@ def _scale_error(q, E, N) -> float:
     return (2 * N + 8 + 2 * abs(E)) * _EPS
 
 
-@jit
+@inline
 def _improves_on(F, w, j, covs, q, E, k, eta, trace: bool) -> bool:
     """Whether f(w) < f(e_j) is verified by the difference computed in node j's whitened
     coordinates (module docstring). Allocates: it runs only where the first test fails."""

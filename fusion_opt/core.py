@@ -287,8 +287,9 @@ _THREAD = threading.local()
 
 # The parts of the library's kernels (`compile_part`), by stage: the parts of a stage can
 # compile at once, in separate processes (longest first); "fuse" links the kernels of
-# "solve" and "assemble" from their cache entries, so its stage starts after theirs.
-KERNEL_STAGES = (("solve", "assemble", "conic", "rules", "cross", "pairs"), ("fuse", "network"))
+# "solve" and "assemble" from their cache entries, so its stage starts after theirs, and
+# "rules", "conic" and "network" load most of their kernels from those entries too.
+KERNEL_STAGES = (("solve", "assemble", "cross", "pairs"), ("rules", "fuse", "conic", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
 
@@ -303,8 +304,11 @@ def compile_part(part: str) -> float:
     the whole exact path, from the kernels of "solve" and "assemble"; "network": the
     checks of an Estimates, MBCI's detection scales and the association of estimates. On
     a cold cache, processes compiling a stage's parts at once (KERNEL_STAGES) shorten the
-    first fusion: about 70 s in one process, 33 s + 6 s on 2 cores (at f915525;
-    `studies/runner.py` has its workers do it, as tests/conftest.py does)."""
+    first fusion: about 70 s in one process; the paper study's parts took 25 s + 10.5 s
+    on 2 cores (2026-11-27, an otherwise idle Intel Xeon; its first run came 38.6 s after
+    the start, against 49.7 s when "conic" and "rules" were in the first stage, before the
+    kernels of `linalg.inline` for compile time; `studies/runner.py` has its workers do
+    it, as tests/conftest.py does)."""
     if part not in KERNEL_PARTS:
         raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
     t0 = time.perf_counter()

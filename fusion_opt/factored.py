@@ -60,6 +60,7 @@ from .linalg import (
     copy,
     gram,
     householder,
+    inline,
     jit,
     lower_inverse,
     matmul,
@@ -206,7 +207,7 @@ def gap(g, w) -> float:
     return max(gw - low, 0.0)
 
 
-@jit
+@inline
 def objective_error(F, w, R, Ri, G, B, X, pnorm, f, trace: bool) -> float:
     """The bound of the module docstring on the rounding error of f at the point factored
     into R, Ri (relative for "trace", absolute for "logdet"); pnorm (N,) holds |P_i|_F;
@@ -234,7 +235,7 @@ def objective_error(F, w, R, Ri, G, B, X, pnorm, f, trace: bool) -> float:
     return _ERR_C * n * _EPS * (kappa + (s / abs(f) if trace else s))
 
 
-@jit
+@inline
 def vertex_error(F, pnorm, trace: bool) -> float:
     """The rounding error of a node's own objective: n eps relative for its trace (a sum),
     c n eps |P|_F |F|_F^2 absolute for its log det (a Cholesky factor)."""
@@ -256,7 +257,7 @@ def verify_work(n: int) -> Verify:
                   m[12], m[13], m[14], m[15], m[16], m[17], np.empty(n))
 
 
-@jit
+@inline
 def improvement(F, w, j, covs, q, shift, eta, trace: bool, v: Verify):
     """(D, bound): D = f(w) - f(e_j) computed in node j's whitened coordinates, and a
     first-order bound on |D - D_exact|, D_exact that difference for the covariances covs
@@ -332,7 +333,7 @@ def improvement(F, w, j, covs, q, shift, eta, trace: bool, v: Verify):
     return D, 2.0 * err
 
 
-@jit
+@inline
 def vertex_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool) -> float:
     """An upper bound, at first order, on the certificate at the vertex e_j for the
     covariances as given (divided by the exact detection scales q 2^shift; eta (N,) bounds
@@ -366,7 +367,7 @@ def vertex_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool) -> float:
     return 0.0
 
 
-@jit
+@inline
 def _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> float:
     """`vertex_gap` over the nodes not `_settled`, in the buffers v."""
     N, n = F.shape[0], F.shape[1]
@@ -450,7 +451,7 @@ def _trace(A) -> float:
     return t
 
 
-@jit
+@inline
 def _trace_difference(Fj, C, wj, v: Verify):
     """D = -tr(K M^-1 Sigma), K = C^T C, and the bound on the rounding from Sigma on (before
     the factor 2 of `improvement`); leaves in v.G the sensitivity to node j's covariance,
@@ -490,7 +491,7 @@ def _trace_difference(Fj, C, wj, v: Verify):
     return D, err
 
 
-@jit
+@inline
 def _logdet_difference(Fj, wj, v: Verify):
     """D = -log det(I + Sigma) = -sum_k log1p(d_k) from the Cholesky factor of I + Sigma
     with its pivots 1 + d_k, and the bound on the rounding from Sigma on; leaves in v.G the
@@ -526,7 +527,7 @@ def _sensitivity(Fj, v: Verify):
             v.G[a, b] = abs(v.G[a, b]) + (2 * n + 2) * _EPS * t
 
 
-@jit
+@inline
 def _sigma_cholesky(v: Verify) -> bool:
     """Cholesky factor v.L of M = I + Sigma with pivots L_kk^2 = 1 + d_k, d_k kept apart
     (v.d), so that log det M = sum log1p(d_k) keeps the digits of a small Sigma; v.T bounds
@@ -557,7 +558,7 @@ def _sigma_cholesky(v: Verify) -> bool:
     return True
 
 
-@jit
+@inline
 def _sum_minus_one(w) -> float:
     """sum_i w_i - 1, compensated (Neumaier): the weights sum to 1 within a few ulps, and
     that difference enters D as it is."""
@@ -639,7 +640,7 @@ def _abs_into(A):
     return A
 
 
-@jit
+@inline
 def _sum_abs(A) -> float:
     t = 0.0
     for a in range(A.shape[0]):
@@ -710,7 +711,7 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
         Et[i, m] = 1.0
 
 
-@jit
+@inline
 def model_view(Et, N: int, n: int, trace: bool):
     """The rows of the nearest-point problem that `model_at` fills: Et (N, n^2 + 1) itself
     for "trace", for "logdet" its first N (n (n + 1) / 2 + 1) entries as an (N, n (n + 1) /

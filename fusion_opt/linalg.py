@@ -243,6 +243,12 @@ jit = _at_level_2(njit(cache=True, error_model="numpy"))
 # For a one-problem step of a batch loop that takes its ~30 work arrays one by one: a
 # compiled call passes each as a struct, and inlined into the loop (numba IR) the calls of
 # `newton.solve_one` and `assemble.assemble_one` cost 0.5 us a problem less at (4, 3).
+# Also for a kernel with one caller below those steps (`factored.improvement`, `eigh`, ...):
+# numba optimises and emits each jit kernel's module with every kernel it calls linked in,
+# so each link of a chain of such kernels did its callees' work again. Inlining 30 of them
+# cut the six parts of the paper study, compiled cold one after the other, from 67.2 and
+# 69.1 s of CPU to 62.6 and 65.3 (two runs each, in pairs on 2 cores); the tables and
+# `fo.bci`'s results are bit for bit the same, and as fast.
 inline = _at_level_2(njit(cache=True, error_model="numpy", inline="always"))
 
 
@@ -421,7 +427,7 @@ def householder(At, n, rows, Vt, R):
             R[k, j] = 0.0
 
 
-@jit
+@inline
 def householder_column(At, k, rows, Vt, R):
     """Column k of `householder`'s QR given its first k reflectors in Vt (left-looking:
     a column appended to a factorization, in O(k rows) instead of a new QR): At[k] is
@@ -486,7 +492,7 @@ def apply_reflector(Vt, k, rows, b):
         b[i] -= t * Vt[k, i]
 
 
-@jit
+@inline
 def thin_qt(Vt, n, rows, Qt):
     """Qt[:n, :rows] = the transpose of the first n columns of Q (n reflectors)."""
     for j in range(n):
@@ -665,7 +671,7 @@ def node_mul(F, i, A, C, upper: bool):
             C[a, br] = t
 
 
-@jit
+@inline
 def node_tmul(F, i, A, C):
     """C = F[i]^T @ A for a stack F (N, n, n) of lower-triangular factors, by loops and
     without a view; the zeros of F[i]^T below its diagonal skipped as in `node_mul`."""
@@ -689,7 +695,7 @@ def node_tmul(F, i, A, C):
             C[a, br] = t
 
 
-@jit
+@inline
 def eigh(S, lam, V):
     """lam (n,) ascending and V (n, n) orthonormal with S = V diag(lam) V^T for the
     symmetric S, which is overwritten (cyclic Jacobi when small, LAPACK otherwise)."""
@@ -718,7 +724,7 @@ def eigh(S, lam, V):
     _sort_pairs(lam, V)
 
 
-@jit
+@inline
 def _rotate(A, V, p, q):
     """One Jacobi rotation zeroing A[p, q] (Golub & Van Loan, Alg. 8.5.2)."""
     theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
@@ -742,7 +748,7 @@ def _rotate(A, V, p, q):
         V[k, q] = s * vkp + c * vkq
 
 
-@jit
+@inline
 def _sort_pairs(lam, V):
     """Sort lam ascending, permuting the columns of V alike (insertion sort: n is small)."""
     n = lam.size

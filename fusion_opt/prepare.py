@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from .linalg import cholesky, jit, lower_inverse, pow2
+from .linalg import cholesky, inline, jit, lower_inverse, pow2
 
 SYMMETRY_RTOL = 1e-8
 MAX_SPREAD_BITS = 1900
@@ -76,7 +76,7 @@ def prepare(means, covs, q, E, F, k, vertex, pnorm, where) -> int:
     return OK
 
 
-@jit
+@inline
 def _check_values(means, covs, where) -> int:
     """Finite means and covariances, symmetric covariances; where[1:] = (node, index)."""
     N, n = means.shape
@@ -144,7 +144,7 @@ def scaled(P, q, shift, S) -> float:
     return np.sqrt(norm2) / unit
 
 
-@jit
+@inline
 def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
     """F_out = C^-1 for C C^T = S = sym(P) / q * 2^-shift; vertex_out = (tr, log det) of S;
     returns |S|_F, or 0 when S is not positive definite."""

@@ -182,9 +182,9 @@ class _Pool:
     def _compile_kernels(self) -> None:
         """The workers compile the library's kernels before the runs, stage by stage, the
         parts of a stage at once (`fusion_opt.core.KERNEL_STAGES`): on a cold cache and 2
-        cores, 33 s and then 6 s, instead of each worker compiling all of it on its first
-        runs (about 70 s). On a warm cache, a load of 0.1 s. Only the parts the study's
-        runs call (`run_all`'s kernels)."""
+        cores, 25 s and then 10.5 s for the paper study, instead of each worker compiling
+        all of it on its first runs (about 70 s). On a warm cache, a load of 0.1 s. Only
+        the parts the study's runs call (`run_all`'s kernels)."""
         from fusion_opt.core import KERNEL_STAGES, compile_part
 
         compiled: queue.SimpleQueue = queue.SimpleQueue()  # apart from the runs' results

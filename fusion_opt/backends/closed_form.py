@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..linalg import eigh, householder, jit, matmul, thin_qt, upper_inverse
+from ..linalg import eigh, householder, inline, jit, matmul, thin_qt, upper_inverse
 
 _EPS = np.finfo(np.float64).eps
 _MAX_ITER = 100  # a guard: the bracket halves at least every other step
@@ -52,7 +52,7 @@ def pair_weight_at(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
     return solve_weight(abc, trace)
 
 
-@jit
+@inline
 def diagonalise(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
     """abc (3, n) = a, b, c of the module docstring: d_k(w) = b_k + w a_k and the trace
     weights; the other arrays are scratch (At (n, >= 2n), n x n, lam (n,))."""
@@ -94,7 +94,7 @@ def _column_sumsq(X, k) -> float:
     return t
 
 
-@jit
+@inline
 def _value(w, abc, trace: bool) -> float:
     """f at w ("logdet" up to its constant): for "logdet" -log of the product of the d_k,
     kept in range (d_k <= 1), one log for many factors instead of one each."""
@@ -114,7 +114,7 @@ def _value(w, abc, trace: bool) -> float:
     return f if trace else f - np.log(m)
 
 
-@jit
+@inline
 def _derivatives(w, abc, trace: bool):
     """f, f' and the damped curvature of the module docstring at w; f only for "trace"
     (the curvature's and the stopping test's scale: "logdet" needs f only in the ladder,
@@ -134,7 +134,7 @@ def _derivatives(w, abc, trace: bool):
     return f, fp, fpp - (1.0 - _RHO2) / n * fp * fp
 
 
-@jit
+@inline
 def solve_weight(abc, trace: bool):
     """argmin over w in [0, 1] of the 1-D problem; (w, iterations)."""
     k_best, f_best = 0, np.inf

@@ -342,7 +342,7 @@ def _sqp(F, trace: bool, w, tol: float, max_iter: int, min_iter: int, fresh: boo
     return best, it, GRADED if graded else FACTORED
 
 
-@jit
+@inline
 def _likely_support(w, g, mask):
     """The warm start of a fresh SQP's first nearest point: the nodes whose w_i (-g_i), the
     next weight of the multiplicative algorithm of optimal design, is at least _LIKELY
@@ -359,7 +359,7 @@ def _likely_support(w, g, mask):
         mask[i] = -w[i] * g[i] >= _LIKELY * top
 
 
-@jit
+@inline
 def _whole_step_if_better(F, trace: bool, w, x, g, At, Vt, R, Ri, P, B, f) -> float:
     """Near the optimum the decrease of f along a Newton step (about the certificate
     squared) can fall below the rounding of f (eps times the condition of the stacked
@@ -388,7 +388,7 @@ def _equal(a, b) -> bool:
     return True
 
 
-@jit
+@inline
 def _step_towards(F, trace: bool, w, x, g, w_try, At, Vt, R, Ri, f) -> float:
     """Armijo backtracking from the nearest point x towards w, allowing the rounding of f;
     w is overwritten with the accepted point, whose f is returned and whose factors are
@@ -453,7 +453,7 @@ def _nearest(Et, x, P, z, r, cols, Elt, Vlt, Rls, qe):
         x /= total
 
 
-@jit
+@inline
 def _normalise(Et):
     """Scales the d_i (the rows of Et without their last entry, the simplex's 1) by a
     power of two (exactly) to a root mean square near 1. The nearest point does not depend
@@ -476,7 +476,7 @@ def _normalise(Et):
             Et[i, p] *= scale
 
 
-@jit
+@inline
 def _entering(Et, x, r, P, tol: float) -> int:
     """The node off P of the largest dual E^T (e - E x) above tol, or -1 (r: scratch)."""
     N, M = Et.shape
@@ -497,7 +497,7 @@ def _entering(Et, x, r, P, tol: float) -> int:
     return j
 
 
-@jit
+@inline
 def _inner(j, k, Et, x, P, z, cols, Elt, Vlt, Rls, qe) -> int:
     """Lawson-Hanson's inner loop after node j entered P, whose other k nodes the QR in
     cols, Elt, Vlt, Rls, qe holds; returns the number of nodes the QR then holds, or -1 if
@@ -547,7 +547,7 @@ def _factor_on(Et, P, cols, Elt, Vlt, Rls, qe) -> int:
     return k
 
 
-@jit
+@inline
 def _append(j, k, Et, cols, Elt, Vlt, Rls, qe) -> int:
     """Node j's column appended to the QR of k columns (qe updated); returns k + 1, or -1
     when the buffers are full."""
