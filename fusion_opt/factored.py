@@ -362,21 +362,22 @@ def vertex_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool) -> float:
     nothing. inf when a Cholesky factor cannot be formed."""
     for i in range(F.shape[0]):
         if i != j and not _settled(F, g, pnorm, eta, i, j):
-            return _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace,
+            return _formed_gap(F, j, i, covs, q, shift, eta, g, pnorm, trace,
                                verify_work(F.shape[1]))
     return 0.0
 
 
 @inline
-def _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> float:
-    """`vertex_gap` over the nodes not `_settled`, in the buffers v."""
+def _formed_gap(F, j, first, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> float:
+    """`vertex_gap` over the nodes not `_settled`, the first of them `first`, in the
+    buffers v."""
     N, n = F.shape[0], F.shape[1]
     u = _EPS
     Sj, S, D, Ci = v.U2, v.S, v.Sig, v.Ci
     scaled(covs[j], q[j], shift[j], Sj)
     top = 0.0
-    for i in range(N):
-        if i == j or _settled(F, g, pnorm, eta, i, j):
+    for i in range(first, N):
+        if i == j or (i > first and _settled(F, g, pnorm, eta, i, j)):
             continue
         scaled(covs[i], q[i], shift[i], S)
         if not cholesky(S, Ci):
@@ -389,11 +390,11 @@ def _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> 
         _absmul(Ci, F[i], v.Eb)       # |C_i| |F_i|, bounds |R_i| / (n eps)
         if trace:
             matmul(v.H, Sj, v.K)      # Y_i D_i P_j
-            delta = _trace(v.K)
+            delta = np.trace(v.K)
             matmul(v.G, Sj, v.V)      # Y_i P_j
             err = u * _inner_abs(D, v.V)                                   # D_i
-            err += (eta[i] + 2.0 * eta[j]) * abs(delta + _trace(Sj)) \
-                + eta[j] * abs(_trace(Sj))                                 # the scales
+            err += (eta[i] + 2.0 * eta[j]) * abs(delta + np.trace(Sj)) \
+                + eta[j] * abs(np.trace(Sj))                                 # the scales
             matmul(v.K, v.G, v.T)     # Y_i D_i P_j Y_i
             err += (n + 3) * u * _inner_abs_cct(Ci, _abs_into(v.T))       # E_i
             matmul(v.V, D, v.T)       # Y_i P_j D_i
@@ -402,7 +403,7 @@ def _formed_gap(F, j, covs, q, shift, eta, g, pnorm, trace: bool, v: Verify) -> 
             _absmul(v.T, Sj, v.V)
             err += (n * n + 3 * n) * u * _inner_abs(v.V, F[i])             # products
         else:
-            delta = _trace(v.H)
+            delta = np.trace(v.H)
             err = u * _inner_abs(D, v.G) \
                 + (eta[i] + eta[j]) * abs(delta + n)                       # D_i, the scales
             matmul(v.H, v.G, v.T)     # Y_i D_i Y_i
@@ -441,14 +442,6 @@ def _settled(F, g, pnorm, eta, i: int, j: int) -> bool:
     if not (rel <= 1e-2 and fi <= 1e280 and fj <= 1e280 and min(gi, gj) >= 1e-280):
         return False
     return g[j] - g[i] + (rel + 4.0 * (eta[i] + eta[j])) * (gi + gj) < 0.0
-
-
-@jit
-def _trace(A) -> float:
-    t = 0.0
-    for a in range(A.shape[0]):
-        t += A[a, a]
-    return t
 
 
 @inline
@@ -655,8 +648,8 @@ def model_at(F, Ri, zeta, Et, g, B, X, S, trace: bool, rho: float):
     d_i = W z_i - (rho c + 1/rho) zeta of the nearest-point problem in Et[i, :m]
     (W = I - (1 - rho) u u^T, u = zeta / |zeta|; backends/newton.py), Et[i, m] = 1; B, X, S
     are n x n scratch. m = Et.shape[1] - 1 is n^2 (z_i as in the module docstring) or, for
-    "logdet" only, n (n + 1) / 2 (`model_view`): X_i is symmetric, and z_i = svec(X_i), its
-    upper triangle with the entries off the diagonal times sqrt(2) (the diagonal first),
+    "logdet" only, n (n + 1) / 2 (`model_view`): X_i is symmetric, and z_i = svec(X_i)
+    (`svec.py`'s coordinates, the diagonal first; the order does not matter here),
     has the same Gram matrix in fewer coordinates (at (n, N) = (6, 16) the nearest point
     in 22 instead of 37 dimensions)."""
     N, n = F.shape[0], F.shape[1]

@@ -229,42 +229,32 @@ def test_start_at_a_vertex_reaches_the_same_optimum():
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_design_steps_are_the_multiplicative_algorithm(kind):
-    """The trace start: two steps w_i <- w_i tr(P Y_i P) / tr(P) from uniform weights,
-    against the same steps from inverted covariances in numpy; they stay on the simplex,
-    positive, and each lowers tr P (as the algorithm does on these problems)."""
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_design_steps_are_the_multiplicative_algorithm(kind, criterion):
+    """The starts of the SQP: from uniform weights, two steps w_i <- w_i tr(P Y_i P) / tr(P)
+    for "trace", one step w_i <- w_i tr(P Y_i) / n for "logdet", against the same steps
+    from inverted covariances in numpy; they stay on the simplex, positive, and each
+    "trace" step lowers tr P (as the algorithm does on these problems)."""
+    trace = criterion == "trace"
+    steps = 2 if trace else 1
     covs = instance(np.random.default_rng(12), 5, 3, kind)
-    F, k = _factors(covs)
+    F, _ = _factors(covs)
     ws = work(5, 3)
     w = np.full(5, 0.2)
-    newton._design_steps(F, w, 2, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g, True)
+    newton._design_steps(F, w, steps, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g, trace)
     Ys = np.linalg.inv(covs)
     ref, f = np.full(5, 0.2), [objective(covs, np.full(5, 0.2), "trace")]
-    for _ in range(2):
+    for _ in range(steps):
         P = np.linalg.inv(np.einsum("i,iab->ab", ref, Ys))
-        ref = ref * np.einsum("ab,ibc,ca->i", P, Ys, P) / np.trace(P)
+        ref = ref * (np.einsum("ab,ibc,ca->i", P, Ys, P) / np.trace(P) if trace else
+                     np.einsum("ab,iba->i", P, Ys) / 3)
         f.append(objective(covs, ref, "trace"))
     # (the reference inverts covariances of condition up to 3e10 here and loses eps x that:
     # 2e-12 measured, so the match is absolute)
     assert np.allclose(w, ref, rtol=0, atol=1e-14 * np.linalg.cond(covs).max())
     assert (w > 0).all() and abs(w.sum() - 1.0) <= 8 * np.finfo(float).eps
-    assert f[2] < f[1] < f[0]
-
-
-@pytest.mark.parametrize("kind", KINDS)
-def test_logdet_design_step_is_the_multiplicative_algorithm(kind):
-    """The "logdet" start: one step w_i <- w_i tr(P Y_i) / n from uniform weights, against
-    the same step from inverted covariances in numpy."""
-    covs = instance(np.random.default_rng(12), 5, 3, kind)
-    F, _ = _factors(covs)
-    ws = work(5, 3)
-    w = np.full(5, 0.2)
-    newton._design_steps(F, w, 1, ws.At, ws.Vt, ws.R, ws.Ri, ws.P, ws.B, ws.g, False)
-    Ys = np.linalg.inv(covs)
-    P = np.linalg.inv(np.einsum("i,iab->ab", np.full(5, 0.2), Ys))
-    ref = 0.2 * np.einsum("ab,iba->i", P, Ys) / 3
-    assert np.allclose(w, ref, rtol=0, atol=1e-14 * np.linalg.cond(covs).max())
-    assert (w > 0).all() and abs(w.sum() - 1.0) <= 8 * np.finfo(float).eps
+    if trace:
+        assert f[2] < f[1] < f[0]
 
 
 def test_an_optimum_at_a_node_is_that_node_exactly_after_design_steps():
