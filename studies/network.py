@@ -351,13 +351,16 @@ def scores(config: dict, data: MultiTargetData, series) -> dict:
     """OSPA, GOSPA, cardinality error, id switches per target and ANEES of one node's
     Estimates series (one per step) against the truth (module docstring)."""
     m = config["metrics"]
-    pairs = matches(series, data.truth, data.alive, m["cutoff"])
-    ospa, gospa, card, est, true, covs = [], [], [], [], [], []
-    for t, (e, (rows, targets)) in enumerate(zip(series, pairs, strict=True)):
-        X = data.truth[data.alive[:, t], t][:, POSITION]
-        ospa.append(metrics.ospa(e.means[:, POSITION], X, m["cutoff"], m["order"]))
-        gospa.append(metrics.gospa(e.means[:, POSITION], X, m["cutoff"], m["order"],
-                                   m["alpha"]))
+    ospa, gospa, card, est, true, covs, pairs = [], [], [], [], [], [], []
+    for t, e in enumerate(series):
+        on = np.flatnonzero(data.alive[:, t])
+        X = data.truth[on, t][:, POSITION]
+        errors = metrics.set_errors(e.means[:, POSITION], X, m["cutoff"], m["order"],
+                                    m["alpha"])
+        rows, targets = errors.rows, on[errors.cols]  # as `matches` gives them
+        pairs.append((rows, targets))
+        ospa.append(errors.ospa)
+        gospa.append(errors.gospa)
         card.append(abs(len(e) - len(X)))
         est.append(e.means[rows])
         true.append(data.truth[targets, t])

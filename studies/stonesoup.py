@@ -492,9 +492,10 @@ def scores(config: dict, sim: Simulation, row: Fused) -> dict:
     ospa, gospa, matched, truths, nees = [], [], [], [], []
     for scan, means, covs in zip(sim.scans, row.means, row.covs, strict=True):
         X, Y = means[:, pos], scan.truth[:, pos]
-        ospa.append(metrics.ospa(X, Y, c, p))
-        gospa.append(metrics.gospa(X, Y, c, p, 2.0))
-        est, targets = metrics.match(X, Y, c)
+        errors = metrics.set_errors(X, Y, c, p, 2.0)
+        ospa.append(errors.ospa)
+        gospa.append(errors.gospa)
+        est, targets = errors.rows, errors.cols
         matched.append(X[est])
         truths.append(Y[targets])
         if len(est):

@@ -157,11 +157,11 @@ def _scores(config, data, series) -> dict:
         means, covs = e.means, e.covs
         alive = np.flatnonzero(data.alive[:, t])
         truth = data.truth[alive, t]
-        ospa.append(metrics.ospa(means[:, POSITION], truth[:, POSITION], c, p))
-        gospa.append(metrics.gospa(means[:, POSITION], truth[:, POSITION], c, p))
+        errors = metrics.set_errors(means[:, POSITION], truth[:, POSITION], c, p)
+        ospa.append(errors.ospa)
+        gospa.append(errors.gospa)
         card.append(abs(len(means) - len(alive)))
-        for i, j in zip(*metrics.match(means[:, POSITION], truth[:, POSITION], c),
-                        strict=True):
+        for i, j in zip(errors.rows, errors.cols, strict=True):
             err = means[i] - truth[j]
             per_target["mse"][alive[j]].append(float(err @ err))
             per_target["mse_pos"][alive[j]].append(float(err[POSITION] @ err[POSITION]))

@@ -142,6 +142,35 @@ def test_metrics_refuse_complex_booleans_and_fractional_components():
         metrics.mse([[True, 0.0]], [[0.0, 0.0]])
 
 
+def test_set_errors_against_brute_force_and_each_metric_alone():
+    """set_errors' OSPA and GOSPA (one shared assignment) against enumeration; its pairs
+    (match's order-1 assignment) cost, with c for each of the smaller set's points left
+    unmatched, the enumerated order-1 optimum; and all of it is what ospa, gospa and match
+    give alone, to the bit."""
+    rng = np.random.default_rng(12)
+    for _ in range(40):
+        m, k = rng.integers(0, 5, size=2)
+        X, Y = rng.normal(size=(m, 2)) * 2, rng.normal(size=(k, 2)) * 2
+        c, p, alpha = rng.uniform(0.5, 3), rng.choice([1, 2, 3]), rng.uniform(0.5, 2)
+        e = metrics.set_errors(X, Y, c, p, alpha)
+        cost, big = brute_force_assignment(X, Y, c, p), max(m, k)
+        ref_ospa = 0.0 if big == 0 else ((cost + c**p * abs(m - k)) / big) ** (1 / p)
+        assert e.ospa == pytest.approx(ref_ospa, rel=1e-10, abs=1e-12)
+        assert e.gospa == pytest.approx((cost + c**p / alpha * abs(m - k)) ** (1 / p),
+                                        rel=1e-10, abs=1e-12)
+        d = np.linalg.norm(X[e.rows] - Y[e.cols], axis=-1)
+        assert np.all(d < c) and len(set(e.rows)) == len(e.rows) == len(set(e.cols))
+        matched_cost = d.sum() + c * (min(m, k) - len(d))
+        assert matched_cost == pytest.approx(brute_force_assignment(X, Y, c, 1), rel=1e-12)
+        rows, cols = metrics.match(X, Y, c)
+        assert (e.ospa, e.gospa) == (metrics.ospa(X, Y, c, p), metrics.gospa(X, Y, c, p, alpha))
+        assert e.rows.tolist() == rows.tolist() and e.cols.tolist() == cols.tolist()
+    with pytest.raises(FusionInputError, match="alpha must be in"):
+        metrics.set_errors(E, E, 1.0, 2, alpha=3.0)
+    with pytest.raises(FusionInputError, match="p must be >= 1"):
+        metrics.set_errors(E, E, 1.0, 0.5)
+
+
 def test_matching_is_the_optimal_assignment_not_greedy():
     """Targets at x = 0 and 0.45, estimates at 0.2 and -0.3, c = 0.5: greedy nearest pairs
     0.2 with 0 and leaves -0.3 (0.75 from 0.45) unmatched; the optimal assignment pairs
