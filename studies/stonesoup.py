@@ -44,7 +44,7 @@ metrics.cutoff, p = metrics.order, position only):
   agrees; Stone Soup's OSPA assigns on d_c, not on d_c^p, so with p > 1 its value is >=
   ours where the two assignments differ. The agreement is measured and reported.
 - cardinality error: scan mean of |n_estimated - n_targets|;
-- matched pairs: at each scan trackers.metrics.match (the optimal assignment of OSPA,
+- matched pairs: at each scan trackers.metrics.match (the optimal assignment on d_c,
   pairs closer than c); position RMSE = sqrt(mean ||e_pos||^2) and ANEES = mean 4-dof
   NEES (m - x)^T P^-1 (m - x) over all matched pairs of the run; "in band": whether the
   run's ANEES lies in the chi-square 95% interval of the mean of K independent chi2(4)

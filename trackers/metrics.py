@@ -20,8 +20,10 @@ Multi-target, for point sets X (m, d) and Y (k, d), with d_c(x, y) = min(c, ||x 
     (with alpha = 2 this is the assignment distance with a cost c^p / 2 per missed or false
     target). The optimal assignment uses scipy.optimize.linear_sum_assignment.
 
-Track identity: `match` pairs estimates with targets (the OSPA assignment, pairs closer
-than c) and `id_switches` counts, per target, how often the id matched to it changes.
+Track identity: `match` pairs estimates with targets (the optimal assignment on d_c, which
+is OSPA's of order 1; pairs closer than c) and `id_switches` counts, per target, how often
+the id matched to it changes. `set_errors` gives OSPA, GOSPA and the match of one step at
+once.
 """
 
 from __future__ import annotations
