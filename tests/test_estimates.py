@@ -20,6 +20,10 @@ def test_holds_read_only_copies_with_default_ids():
     assert e.ids.tolist() == [0, 1] and e.ids.dtype == np.int64
     assert (len(e), e.n, e.time, e.node) == (2, 2, 2.0, "radar")
     assert e.take([1]).ids.tolist() == [1] and e.take([1]).node == "radar"
+    ids = np.array([7, 3], dtype=np.int64)  # ids already int64 are copied too, as a Group's
+    e, g = fo.Estimates(M, C, ids), fo.Group(("a", "b"), ids, M, C)
+    ids[0] = 5
+    assert e.ids.tolist() == g.ids.tolist() == [7, 3] and ids.flags.writeable
 
 
 def test_covariances_are_symmetrised_within_the_tolerance():
