@@ -296,6 +296,10 @@ def _measured(fast_enough: bool) -> list[dict]:
                       per_call=10),  # 3x the large batch's
                  _row("large", BCI, "newton", 48, 8, crit, 1.0),
                  _row("large", BCI, "clarabel", 48, 8, crit, 50.0 * k)]
+        # the call less its solve: 15 us (16.5 us), of a warm 20 us
+        rows += [_row("parts", part, "newton", 4, 3, crit, t) for part, t in
+                 zip(backends_report.PART_NAMES, (20e-3, 3e-3, (5 - 1.5 * (1 - k) / 0.1)
+                                                  * 1e-3, 4e-3), strict=True)]
     return rows
 
 
@@ -303,21 +307,23 @@ def test_targets_are_met_exactly_at_their_bounds_and_missed_below():
     instances = [_instance(CI, "closed-form", k, 0.01, 0.0) for k in range(3)]
     instances += [_instance("minimize_scalar", "-", k, 0.1, 1e-9) for k in range(3)]
     met = backends_report.targets(_measured(True), instances)
-    assert [t[2] for t in met] == ["met"] * 6
+    assert [t[2] for t in met] == ["met"] * 7
     assert "worst 100x at (n, N) = (4, 3) trace; 2 of 2 points >= 100x" in met[0][1]
+    assert met[1][1] == "trace 15 us; logdet 15 us"
     missed = backends_report.targets(_measured(False), instances)
-    assert [t[2] for t in missed] == ["missed"] * 5 + ["met"]
-    assert "worst 90x" in missed[0][1] and "trace 9x" in missed[1][1]
+    assert [t[2] for t in missed] == ["missed"] * 6 + ["met"]
+    assert "worst 90x" in missed[0][1] and "trace 16.5 us" in missed[1][1]
+    assert "trace 9x" in missed[2][1]
     # an objective worse than minimize_scalar's on one problem misses target 2
     worse = instances + [_instance(CI, "closed-form", 3, 0.01, 1e-9),
                          _instance("minimize_scalar", "-", 3, 0.1, 0.0)]
-    assert backends_report.targets(_measured(True), worse)[1][2] == "missed"
-    assert "on 1 of 4 pair problems" in backends_report.targets(_measured(True), worse)[1][1]
+    assert backends_report.targets(_measured(True), worse)[2][2] == "missed"
+    assert "on 1 of 4 pair problems" in backends_report.targets(_measured(True), worse)[2][1]
     # a newton failure or a loose certificate misses the exactness target
     spoiled = _measured(True) + [_row("single", BCI, "newton", 2, 2, "trace", 0.01,
                                       failures=1)]
     assert backends_report.targets(spoiled, instances)[-1][2] == "missed"
-    assert [t[2] for t in backends_report.targets([], [])] == ["not measured"] * 6
+    assert [t[2] for t in backends_report.targets([], [])] == ["not measured"] * 7
 
 
 def test_weights_off_the_simplex_are_put_on_it_before_the_gaps():
