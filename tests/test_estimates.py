@@ -24,6 +24,16 @@ def test_holds_read_only_copies_with_default_ids():
     e, g = fo.Estimates(M, C, ids), fo.Group(("a", "b"), ids, M, C)
     ids[0] = 5
     assert e.ids.tolist() == g.ids.tolist() == [7, 3] and ids.flags.writeable
+    # fuzz T2: a long long (int64's twin on Linux) is stored as int64, not as itself
+    e = fo.Estimates(M, C, np.array([7, 3], dtype=np.longlong))
+    assert e.ids.dtype == np.int64 and isinstance(e.ids[0], np.int64)
+    # ... and masked ids are refused, as masked means are: their hidden values were read
+    for mask in ([True, False], [True, True]):
+        masked = np.ma.MaskedArray(np.array([5, 6]), mask=mask)
+        with pytest.raises(fo.FusionInputError, match="ids is a masked array"):
+            fo.Estimates(M, C, masked)
+        with pytest.raises(fo.FusionInputError, match="ids is a masked array"):
+            fo.Group(("a", "b"), masked, M, C)
 
 
 def test_covariances_are_symmetrised_within_the_tolerance():

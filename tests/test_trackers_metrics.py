@@ -2,6 +2,7 @@
 
 import itertools
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -167,6 +168,16 @@ def test_set_errors_against_brute_force_and_each_metric_alone():
         assert e.rows.tolist() == rows.tolist() and e.cols.tolist() == cols.tolist()
     with pytest.raises(FusionInputError, match="alpha must be in"):
         metrics.set_errors(E, E, 1.0, 2, alpha=3.0)
+    # fuzz T1: (k - m) / alpha past float64 with a tiny c: the root from logs overflowed
+    # before c multiplied it, and a finite GOSPA was refused (exact: c (k - m) / alpha, p = 1)
+    for c, alpha in ((5e-324, 1e-320), (1e-300, 5e-324)):
+        exact = float(Fraction(c) / Fraction(alpha))
+        assert metrics.gospa(np.zeros((1, 1)), np.zeros((0, 1)), c, 1.0, alpha) == \
+            pytest.approx(exact, rel=1e-12)
+    # fuzz T3: an integer c past float64 is refused by name, not with an OverflowError
+    for c in (2**2000, 10**5000):
+        with pytest.raises(FusionInputError, match="c must be a finite positive number, got"):
+            metrics.ospa(E, E, c, 2)
     with pytest.raises(FusionInputError, match="p must be >= 1"):
         metrics.set_errors(E, E, 1.0, 0.5)
 

@@ -45,28 +45,36 @@ def real(name: str, value) -> float:
         isinstance(value, numbers.Real)
         or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")
     ):
-        raise FusionInputError(f"{name} must be a real number, got {value!r}")
-    return float(value)
+        raise FusionInputError(f"{name} must be a real number, got {_shown(value)}")
+    try:
+        return float(value)
+    except OverflowError:  # an int or a Fraction past float64 (2**2000, fuzz T3): +-inf,
+        return float(np.copysign(np.inf, value > 0))  # which the callers refuse by range
+
+
+def _shown(value) -> str:
+    """repr(value), an integer of hundreds of digits shortened (`validation.short_repr`)."""
+    return _fo.short_repr(value) if isinstance(value, int) else repr(value)
 
 
 def finite(name: str, value) -> float:
     x = real(name, value)
     if not np.isfinite(x):
-        raise FusionInputError(f"{name} must be a finite real number, got {value!r}")
+        raise FusionInputError(f"{name} must be a finite real number, got {_shown(value)}")
     return x
 
 
 def nonnegative(name: str, value) -> float:
     x = real(name, value)
     if not (np.isfinite(x) and x >= 0.0):
-        raise FusionInputError(f"{name} must be a finite number >= 0, got {value!r}")
+        raise FusionInputError(f"{name} must be a finite number >= 0, got {_shown(value)}")
     return x
 
 
 def positive(name: str, value) -> float:
     x = real(name, value)
     if not (np.isfinite(x) and x > 0.0):
-        raise FusionInputError(f"{name} must be a finite positive number, got {value!r}")
+        raise FusionInputError(f"{name} must be a finite positive number, got {_shown(value)}")
     return x
 
 
@@ -76,7 +84,7 @@ def variance(name: str, sd) -> float:
     s = positive(name, sd)
     v = s * s
     if not np.finfo(float).tiny <= v < np.inf:
-        raise FusionInputError(f"{name} = {sd!r}: its square, the variance, is outside "
+        raise FusionInputError(f"{name} = {_shown(sd)}: its square, the variance, is outside "
                                "float64's range")
     return v
 
@@ -84,7 +92,7 @@ def variance(name: str, sd) -> float:
 def probability(name: str, value) -> float:
     p = real(name, value)
     if not 0.0 <= p <= 1.0:  # False for NaN
-        raise FusionInputError(f"{name} must be a probability in [0, 1], got {value!r}")
+        raise FusionInputError(f"{name} must be a probability in [0, 1], got {_shown(value)}")
     return p
 
 

@@ -348,9 +348,10 @@ def _gospa(cost, sizes, p, alpha, c) -> float:
     with np.errstate(over="ignore"):
         total = S + (k - m) / alpha
         # (k - m) / alpha past float64 (alpha = 5e-324, fuzz O2): the root from logs, where
-        # S <= k is below the rounding of a total past 1e308
+        # S <= k is below the rounding of a total past 1e308, u = c among them (its root
+        # alone overflowed beside c = 5e-324 and 1e-300: fuzz T1)
         value = float(u * total ** (1.0 / p)) if np.isfinite(total) else \
-            float(u * np.exp((np.log(k - m) - np.log(alpha)) / p))
+            float(np.exp(np.log(u) + (np.log(k - m) - np.log(alpha)) / p))
     if not np.isfinite(value):  # fuzz N3: inf for c = 1e308 and two missed targets
         raise FusionInputError(f"GOSPA overflows float64 (c = {c:g}, alpha = {alpha:g}, "
                                f"{k - m} unassigned points)")
