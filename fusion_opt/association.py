@@ -43,7 +43,7 @@ from .estimates import Estimates, track_ids
 from .limits import fits, limits
 from .linalg import jit
 from .results import FusionInputError
-from .validation import finite_real, hashable
+from .validation import finite_real, hashable, safe_repr
 
 __all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
@@ -72,7 +72,7 @@ class Group:
         if isinstance(sources, str | bytes) or not isinstance(sources, tuple | list) \
                 or not all(hashable(s) for s in sources) or len(set(sources)) != len(sources):
             raise FusionInputError(f"Group: sources must be distinct hashable names, got "
-                                   f"{sources!r}")
+                                   f"{safe_repr(sources)}")
         try:
             checked = Estimates(self.means, self.covs)  # means (k, n), covs (k, n, n)
             ids = track_ids(self.ids, len(checked), unique=False)
@@ -130,13 +130,15 @@ def associate(reports: Mapping[Hashable, Estimates], threshold: float,
 def check_threshold(threshold) -> float:
     value = finite_real(threshold)
     if value is None or value <= 0:
-        raise FusionInputError(f"threshold must be a positive finite distance, got {threshold!r}")
+        raise FusionInputError(f"threshold must be a positive finite distance, got "
+                               f"{safe_repr(threshold)}")
     return value
 
 
 def check_method(method) -> str:
     if method not in METHODS:
-        raise FusionInputError(f"association method must be one of {METHODS}, got {method!r}")
+        raise FusionInputError(f"association method must be one of {METHODS}, got "
+                               f"{safe_repr(method)}")
     return method
 
 
@@ -145,15 +147,18 @@ def check_dims(dims, n: int | None = None) -> list[int] | None:
     if dims is None:
         return None
     if isinstance(dims, str | bytes) or not hasattr(dims, "__iter__"):
-        raise FusionInputError(f"dims must be a sequence of state components, got {dims!r}")
+        raise FusionInputError(f"dims must be a sequence of state components, got "
+                               f"{safe_repr(dims)}")
     dims = list(dims)
     if (not dims or any(isinstance(d, bool) or not isinstance(d, numbers.Integral) for d in dims)
             or len(set(dims)) != len(dims)):
-        raise FusionInputError(f"dims must be distinct integer state components, got {dims!r}")
+        raise FusionInputError(f"dims must be distinct integer state components, got "
+                               f"{safe_repr(dims)}")
     if any(d < 0 for d in dims):
-        raise FusionInputError(f"dims must be state components >= 0, got {dims}")
+        raise FusionInputError(f"dims must be state components >= 0, got {safe_repr(dims)}")
     if n is not None and any(d >= n for d in dims):
-        raise FusionInputError(f"dims {dims} out of range for a state of dimension n = {n}")
+        raise FusionInputError(f"dims {safe_repr(dims)} out of range for a state of dimension "
+                               f"n = {n}")
     return [int(d) for d in dims]
 
 
@@ -164,7 +169,7 @@ def _check_reports(reports) -> tuple[list, list[Estimates]]:
                                f"{type(reports).__name__}")
     for name, r in reports.items():
         if not isinstance(r, Estimates):
-            raise FusionInputError(f"report of source {name!r} must be an Estimates, got "
+            raise FusionInputError(f"report of source {safe_repr(name)} must be an Estimates, got "
                                    f"{type(r).__name__}")
     ns = {name: r.n for name, r in reports.items()}
     if len(set(ns.values())) > 1:

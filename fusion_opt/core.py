@@ -68,6 +68,7 @@ from .validation import (
     definiteness_error,
     kernel_array,
     real_array,
+    safe_repr,
     symmetrised,
 )
 
@@ -144,25 +145,26 @@ def _plain_request(method: str, criterion: str, backend: str | None, polish: boo
 
 def _request(method, criterion, backend, args: dict) -> Request:
     if not isinstance(method, str) or method not in METHODS:
-        raise FusionInputError(f"method must be one of {METHODS}, got {method!r}")
+        raise FusionInputError(f"method must be one of {METHODS}, got {safe_repr(method)}")
     if not isinstance(criterion, str) or criterion not in CRITERIA:
-        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {safe_repr(criterion)}")
     polish = args.pop("polish", True)
     if not isinstance(polish, bool):
-        raise FusionInputError(f"polish must be True or False, got {polish!r}")
+        raise FusionInputError(f"polish must be True or False, got {safe_repr(polish)}")
     stray = sorted(set(args) - _ARGS[method])
     if stray:
         takes = sorted(_ARGS[method]) or "no other argument"
-        raise FusionInputError(f"method {method!r} takes {takes}, not {stray}")
+        raise FusionInputError(f"method {safe_repr(method)} takes {takes}, not {stray}")
     if method in rules.RULES:
         if backend is not None:
-            raise FusionInputError(f"method {method!r} has no weight solver: leave backend "
-                                   f"unset (got {backend!r})")
+            raise FusionInputError(f"method {safe_repr(method)} has no weight solver: leave "
+                                   f"backend "
+                                   f"unset (got {safe_repr(backend)})")
         return Request(method, criterion, None, polish, args)
     if backend is None:
         backend = DEFAULT_BACKEND
     if not isinstance(backend, str) or backend not in BACKENDS:
-        raise FusionInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        raise FusionInputError(f"backend must be one of {BACKENDS}, got {safe_repr(backend)}")
     if method == "mbci" and "p_detect" not in args:
         raise FusionInputError("method 'mbci' needs p_detect, and chi or growth")
     return Request(method, criterion, backend, polish, args)
@@ -207,7 +209,7 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
     a BatchFusionResult."""
     B, N, n = means.shape
     if req.method in PAIR_METHODS and N != 2:
-        raise FusionInputError(f"method {req.method!r} fuses 2 nodes, got N = {N}")
+        raise FusionInputError(f"method {safe_repr(req.method)} fuses 2 nodes, got N = {N}")
     if req.backend == "closed-form" and N != 2:
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
     q, E = _detection(req, B, N, batch)
@@ -310,7 +312,7 @@ def compile_part(part: str) -> float:
     kernels of `linalg.inline` for compile time; `studies/runner.py` has its workers do
     it, as tests/conftest.py does)."""
     if part not in KERNEL_PARTS:
-        raise ValueError(f"part must be one of {KERNEL_PARTS}, got {part!r}")
+        raise ValueError(f"part must be one of {KERNEL_PARTS}, got {safe_repr(part)}")
     t0 = time.perf_counter()
     if part in ("rules", "cross", "pairs", "network"):
         {"rules": _rule_kernels, "cross": _cross_kernel, "pairs": _pair_kernels,

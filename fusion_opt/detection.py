@@ -24,7 +24,7 @@ import numpy as np
 from .limits import fits
 from .linalg import jit
 from .results import FusionInputError
-from .validation import check_detection, finite_array, real_array
+from .validation import check_detection, finite_array, real_array, safe_repr
 
 _LOG2E = 1.0 / np.log(2.0)
 
@@ -123,7 +123,8 @@ def _rows(x, lead: tuple, N: int) -> np.ndarray:
 def _refuse(p_detect, chi, n_nodes, growth):
     """Raises `_checked`'s error for inputs `_split` or `_layout` refused."""
     _checked(p_detect, chi, n_nodes, growth)
-    raise FusionInputError(f"p_detect {p_detect!r} with chi {chi!r} or growth {growth!r} "
+    raise FusionInputError(f"p_detect {safe_repr(p_detect)} with chi {safe_repr(chi)} or growth "
+                           f"{safe_repr(growth)} "
                            "cannot give detection scales")  # a guard: _checked refuses them
 
 
@@ -237,7 +238,7 @@ def _inferred(*named) -> int:
 
 def _node_count(n_nodes) -> int:
     if isinstance(n_nodes, bool) or not isinstance(n_nodes, numbers.Integral) or n_nodes < 1:
-        raise FusionInputError(f"n_nodes must be an integer >= 1, got {n_nodes!r}")
+        raise FusionInputError(f"n_nodes must be an integer >= 1, got {safe_repr(n_nodes)}")
     if n_nodes > 10**7:
         raise FusionInputError(f"n_nodes = {n_nodes} is more nodes than a fusion can hold")
     return int(n_nodes)

@@ -24,7 +24,15 @@ import numpy as np
 
 from .limits import estimates_bytes, fits
 from .results import FusionInputError
-from .validation import check_spd, finite_array, finite_real, hashable, real_array, short_repr
+from .validation import (
+    check_spd,
+    finite_array,
+    finite_real,
+    hashable,
+    real_array,
+    safe_repr,
+    short_repr,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +67,7 @@ class Estimates:
     def empty(cls, n: int, time: float | None = None, node: Hashable | None = None):
         """No estimate of an n-dimensional state (a step with nothing to report)."""
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
-            raise FusionInputError(f"n must be an integer >= 1, got {n!r}")
+            raise FusionInputError(f"n must be an integer >= 1, got {safe_repr(n)}")
         fits(f"n = {n}", estimates_bytes(1, n))  # an estimate of a later step
         return cls(np.zeros((0, n)), np.zeros((0, n, n)), None, time, node)
 
@@ -83,13 +91,13 @@ class Estimates:
         if idx is None or idx.dtype.kind not in "iu" or idx.ndim > 1 \
                 or (idx.size and not -m <= idx.min() <= idx.max() < m):
             raise FusionInputError(f"indices must be integer positions in [-{m}, {m}) or a "
-                                   f"boolean mask ({m},), got {indices!r}")
+                                   f"boolean mask ({m},), got {safe_repr(indices)}")
         idx = idx.reshape(-1)
         return Estimates(self.means[idx], self.covs[idx], self.ids[idx], self.time, self.node)
 
     def __repr__(self) -> str:
         return (f"Estimates(m={len(self)}, n={self.n}, ids={self.ids.tolist()}, "
-                f"time={self.time}, node={self.node!r})")
+                f"time={self.time}, node={safe_repr(self.node)})")
 
 
 def _arrays(means, covs, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -222,7 +230,8 @@ def check_forward(time: float | None, last: float | None, name: str = "time") ->
     the trackers predict forward and the processing nodes continue tracks forward, so data
     out of time order would be fused as if in order (fuzz I10)."""
     if time is not None and last is not None and time < last:
-        raise FusionInputError(f"{name} = {time!r} is before the previous step's, {last!r}: "
+        raise FusionInputError(f"{name} = {safe_repr(time)} is before the previous step's, "
+                               f"{safe_repr(last)}: "
                                "steps go forward in time (data out of order is not "
                                "supported)")
 

@@ -22,7 +22,7 @@ from .backends import newton
 from .core import Names
 from .factored import work
 from .results import FusionInputError, FusionResult
-from .validation import real_array
+from .validation import real_array, safe_repr
 
 _PAIR = Names("m_a and m_b", "P_a and P_b", pair=True)
 
@@ -114,12 +114,12 @@ def _simplex_weights(weights, N: int) -> np.ndarray:
         raise FusionInputError(f"weights must be finite, got {w.tolist()}")
     if (w < 0).any():
         i = int(np.argmin(w))
-        raise FusionInputError(f"weights must be >= 0, got {float(w[i])!r} at node {i}")
+        raise FusionInputError(f"weights must be >= 0, got {safe_repr(float(w[i]))} at node {i}")
     eps = np.finfo(given).eps if given.kind == "f" else 0.0
     tol = max(1e-9, N * eps)
     if not abs(w.sum() - 1.0) <= tol:
         raise FusionInputError(f"weights must sum to 1 (within {tol:.3g}), got a sum of "
-                               f"{float(w.sum())!r}")
+                               f"{safe_repr(float(w.sum()))}")
     return w / w.sum()
 
 
@@ -130,7 +130,7 @@ def warmup(n: int, N: int, criterion="trace", backend=None) -> float:
     Returns the seconds it took."""
     for name, value in (("n", n), ("N", N)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise FusionInputError(f"{name} must be an integer >= 1, got {value!r}")
+            raise FusionInputError(f"{name} must be an integer >= 1, got {safe_repr(value)}")
     core.check_memory(core.request("bci", criterion, backend, {}), n, N)  # before allocating
     t0 = time.perf_counter()
     fuse(np.zeros((N, n)), np.broadcast_to(np.eye(n), (N, n, n)), "bci", criterion, backend)

@@ -29,6 +29,7 @@ import numbers
 from dataclasses import dataclass
 
 from .results import FusionInputError
+from .validation import safe_repr
 
 _GIB = 2**30
 
@@ -43,8 +44,8 @@ class Limits:
 
     def __setattr__(self, name, value):
         if name not in self.__dataclass_fields__:  # a misspelt limit would do nothing
-            raise AttributeError(f"fusion_opt.limits has no limit {name!r}; its limits are "
-                                 f"{tuple(self.__dataclass_fields__)}")
+            raise AttributeError(f"fusion_opt.limits has no limit {safe_repr(name)}; its limits "
+                                 f"are {tuple(self.__dataclass_fields__)}")
         try:
             ok = not isinstance(value, bool) and isinstance(value, numbers.Real) \
                 and float(value) > 0
@@ -52,7 +53,7 @@ class Limits:
             ok = False
         if not ok:
             raise ValueError(f"limits.{name} must be a positive number of bytes (inf: no "
-                             f"limit), got {value!r}")
+                             f"limit), got {safe_repr(value)}")
         super().__setattr__(name, float(value))
 
 

@@ -54,7 +54,7 @@ from typing import Any, Protocol
 from .estimates import Estimates, check_forward, check_time
 from .processing import ProcessingNode
 from .results import FusionInputError, FusionSolverError, in_context
-from .validation import hashable
+from .validation import hashable, safe_repr
 
 
 class Tracker(Protocol):
@@ -109,13 +109,14 @@ class Network:
     def _check_lost(self, lost, scans) -> frozenset:
         """lost: names of trackers with a scan at this step (a lost link's tracker steps)."""
         if isinstance(lost, str | bytes | Mapping) or not isinstance(lost, Iterable):
-            raise FusionInputError(f"lost must be a collection of tracker names, got {lost!r}")
+            raise FusionInputError(f"lost must be a collection of tracker names, got "
+                                   f"{safe_repr(lost)}")
         lost = list(lost)
         bad = [name for name in lost if not hashable(name) or name not in scans]
         if bad:
             raise FusionInputError(
-                f"lost names {bad}, not trackers with a scan at this step: a lost link's "
-                "tracker steps on its scan (the empty scan if it detected nothing) and its "
+                f"lost names {safe_repr(bad)}, not trackers with a scan at this step: a lost "
+                "link's tracker steps on its scan (the empty scan if it detected nothing) and its "
                 "report does not arrive")
         return frozenset(lost)
 
@@ -142,7 +143,7 @@ def _processing_step(name, node, reports, time) -> Estimates:
     try:
         fused = node.step(reports, time)
     except (FusionInputError, FusionSolverError) as exc:  # name the node as the network
-        raise in_context(exc, f"processing node {name!r}: ") from exc  # knows it
+        raise in_context(exc, f"processing node {safe_repr(name)}: ") from exc  # knows it
     return fused if fused.node is not None else dataclasses.replace(fused, node=name)
 
 
@@ -158,9 +159,10 @@ def _tracker_step(name, tracker, scan) -> Estimates:
     try:
         estimates = tracker.step(scan)
     except (FusionInputError, FusionSolverError) as exc:  # name the tracker as the
-        raise in_context(exc, f"tracker {name!r}: ") from exc  # network knows it
+        raise in_context(exc, f"tracker {safe_repr(name)}: ") from exc  # network knows it
     if not isinstance(estimates, Estimates):
-        raise FusionInputError(f"tracker {name!r} returned {type(estimates).__name__} from "
+        raise FusionInputError(f"tracker {safe_repr(name)} returned {type(estimates).__name__} "
+                               f"from "
                                f"step, not an Estimates")
     return estimates
 
@@ -171,7 +173,7 @@ def _check_trackers(trackers) -> dict:
                                f"{type(trackers).__name__}")
     for name, tracker in trackers.items():
         if not callable(getattr(tracker, "step", None)):
-            raise FusionInputError(f"tracker {name!r} has no step(scan) method")
+            raise FusionInputError(f"tracker {safe_repr(name)} has no step(scan) method")
     _refuse_shared(trackers, "tracker")
     return dict(trackers)
 
@@ -185,11 +187,13 @@ def _check_processing(processing, trackers) -> dict:
         raise FusionInputError(f"names {both} are both trackers and processing nodes")
     for name, node in processing.items():
         if not isinstance(node, ProcessingNode):
-            raise FusionInputError(f"processing node {name!r} must be a ProcessingNode, got "
+            raise FusionInputError(f"processing node {safe_repr(name)} must be a ProcessingNode, "
+                                   f"got "
                                    f"{type(node).__name__}")
         unknown = [s for s in node.sources if s not in trackers and s not in processing]
         if unknown:
-            raise FusionInputError(f"processing node {name!r} has sources {unknown} that are "
+            raise FusionInputError(f"processing node {safe_repr(name)} has sources {unknown} that "
+                                   f"are "
                                    f"neither trackers nor processing nodes")
     _refuse_shared(processing, "processing node")
     return dict(processing)

@@ -55,7 +55,7 @@ from .fusion import fuse
 from .limits import batch_bytes, limits
 from .linalg import row_norms
 from .results import FusionInputError, FusionSolverError, in_context
-from .validation import finite_real, hashable
+from .validation import finite_real, hashable, safe_repr
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
 PAIRWISE = ("ci", "ici", "ei")
@@ -168,7 +168,7 @@ class ProcessingNode:
             try:
                 fuse(g.means, g.covs, self.method, self.criterion, self.backend, **one)
             except (FusionInputError, FusionSolverError) as alone:
-                members = [f"source {s!r} track {i} (node {k})" for k, (s, i)
+                members = [f"source {safe_repr(s)} track {i} (node {k})" for k, (s, i)
                            in enumerate(zip(g.sources, g.ids.tolist(), strict=True))]
                 if len(members) > 6:  # a group of 2,000 listed 78,000 characters (fuzz I13)
                     members[3:-2] = [f"{len(members) - 5} more"]
@@ -223,17 +223,17 @@ class ProcessingNode:
         return FusionInputError(f"{self._where()}: {message}")
 
     def _where(self) -> str:
-        return "ProcessingNode" if self.name is None else f"ProcessingNode {self.name!r}"
+        return "ProcessingNode" if self.name is None else f"ProcessingNode {safe_repr(self.name)}"
 
     def _check_sources(self, sources) -> tuple:
         if isinstance(sources, str | bytes | Mapping) or not hasattr(sources, "__iter__"):
-            raise self._err(f"sources must be a sequence of source names, got {sources!r}")
+            raise self._err(f"sources must be a sequence of source names, got {safe_repr(sources)}")
         sources = tuple(sources)
         if not sources:
             raise self._err("sources is empty: a processing node needs at least one source")
         bad = [s for s in sources if not hashable(s)]
         if bad:
-            raise self._err(f"sources must be hashable names, got {bad!r}")
+            raise self._err(f"sources must be hashable names, got {safe_repr(bad)}")
         repeated = sorted(repr(s) for s, k in Counter(sources).items() if k > 1)
         if repeated:
             raise self._err(f"sources are listed more than once: {', '.join(repeated)}")
@@ -245,15 +245,17 @@ class ProcessingNode:
                             "which a processing node does not have")
         self._check_choice("method", method, FUSE_METHODS)
         if method in PAIRWISE and len(self.sources) > 2:
-            raise self._err(f"method {method!r} fuses pairs, but {len(self.sources)} sources "
+            raise self._err(f"method {safe_repr(method)} fuses pairs, but {len(self.sources)} "
+                            f"sources "
                             f"can form larger groups: use 'bci' or 'mbci'")
         return method
 
     def _check_backend(self, backend) -> str | None:
         if self.method not in CI_FAMILY:
             if backend is not None:
-                raise self._err(f"method {self.method!r} has no weight solver: leave backend "
-                                f"unset (got {backend!r})")
+                raise self._err(f"method {safe_repr(self.method)} has no weight solver: leave "
+                                f"backend "
+                                f"unset (got {safe_repr(backend)})")
             return None
         backend = DEFAULT_BACKEND if backend is None else backend
         self._check_choice("backend", backend, BACKENDS)
@@ -264,7 +266,7 @@ class ProcessingNode:
 
     def _check_choice(self, name: str, value, choices) -> str:
         if not isinstance(value, str) or value not in choices:
-            raise self._err(f"{name} must be one of {tuple(choices)}, got {value!r}")
+            raise self._err(f"{name} must be one of {tuple(choices)}, got {safe_repr(value)}")
         return value
 
     def _check_detection(self, p_detect, chi, growth) -> tuple[dict | None, float | None]:
@@ -276,11 +278,11 @@ class ProcessingNode:
             if given:
                 verb = "apply" if len(given) > 1 else "applies"
                 raise self._err(f"{' and '.join(given)} {verb} to method 'mbci' only, not "
-                                f"{self.method!r}")
+                                f"{safe_repr(self.method)}")
             return None, None
         if not isinstance(p_detect, Mapping):
             raise self._err(f"method 'mbci' needs p_detect, a mapping source -> detection "
-                            f"probability, got {p_detect!r}")
+                            f"probability, got {safe_repr(p_detect)}")
         missing = [s for s in self.sources if s not in p_detect]
         unknown = [s for s in p_detect if s not in self._known]
         if missing or unknown:
@@ -289,8 +291,9 @@ class ProcessingNode:
         p = {s: finite_real(p_detect[s]) for s in self.sources}
         for s, value in p.items():
             if value is None or not 0.0 <= value <= 1.0:
-                raise self._err(f"p_detect of source {s!r} must be a number in [0, 1], got "
-                                f"{p_detect[s]!r}")
+                raise self._err(f"p_detect of source {safe_repr(s)} must be a number in [0, 1], "
+                                f"got "
+                                f"{safe_repr(p_detect[s])}")
         value = finite_real(chi)
         if growth is not None:
             if value != 1.0:
@@ -298,23 +301,23 @@ class ProcessingNode:
             g = finite_real(growth)
             if g is None or g < 1.0:
                 raise self._err(f"growth must be one finite number >= 1, the same for every "
-                                f"source, got {growth!r}")
+                                f"source, got {safe_repr(growth)}")
             value = 1.0 / g
         if value is None or not 0.0 < value <= 1.0:
             raise self._err(f"chi must be one number in (0, 1], the same for every source, "
-                            f"got {chi!r}")
+                            f"got {safe_repr(chi)}")
         return p, value
 
     def _check_min_sources(self, min_sources) -> int:
         if (isinstance(min_sources, bool) or not isinstance(min_sources, numbers.Integral)
                 or not 1 <= min_sources <= len(self.sources)):
             raise self._err(f"min_sources must be an integer in [1, {len(self.sources)}] "
-                            f"(the number of sources), got {min_sources!r}")
+                            f"(the number of sources), got {safe_repr(min_sources)}")
         return int(min_sources)
 
     def _check_memory(self, memory) -> int:
         if isinstance(memory, bool) or not isinstance(memory, numbers.Integral) or memory < 1:
-            raise self._err(f"memory must be an integer >= 1 (steps), got {memory!r}")
+            raise self._err(f"memory must be an integer >= 1 (steps), got {safe_repr(memory)}")
         return int(memory)
 
     def _check_reports(self, reports) -> tuple[dict[Hashable, Estimates], int]:
@@ -330,7 +333,7 @@ class ProcessingNode:
         ordered = {s: reports[s] for s in self.sources if s in reports}
         for s, r in ordered.items():
             if not isinstance(r, Estimates):
-                raise self._err(f"report of source {s!r} must be an Estimates, got "
+                raise self._err(f"report of source {safe_repr(s)} must be an Estimates, got "
                                 f"{type(r).__name__}")
         ns = {s: r.n for s, r in ordered.items()}
         n = self._n if self._n is not None else next(iter(ns.values()), None)
@@ -370,6 +373,6 @@ class _Track(NamedTuple):
 
 def _check_name(name):
     if name is not None and not hashable(name):
-        raise FusionInputError(f"ProcessingNode: name must be hashable, got {name!r}")
+        raise FusionInputError(f"ProcessingNode: name must be hashable, got {safe_repr(name)}")
     return name
 

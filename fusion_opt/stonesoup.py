@@ -52,7 +52,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 from . import BACKENDS, FusionInputError, FusionResult, fuse
 from .estimates import Estimates
-from .validation import hashable, real_array, short_repr
+from .validation import hashable, real_array, safe_repr, short_repr
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]
@@ -73,7 +73,7 @@ def to_seconds(timestamp: datetime | None, epoch: datetime = EPOCH) -> float | N
     if timestamp is None:
         return None
     if not isinstance(timestamp, datetime):
-        raise FusionInputError(f"timestamp must be a datetime or None, got {timestamp!r}")
+        raise FusionInputError(f"timestamp must be a datetime or None, got {safe_repr(timestamp)}")
     _check_epoch(epoch)
     try:
         return (timestamp - epoch) / timedelta(seconds=1)
@@ -88,7 +88,8 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
         return None
     if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) \
             or (isinstance(seconds, float | np.floating) and not np.isfinite(seconds)):
-        raise FusionInputError(f"seconds must be a finite real number or None, got {seconds!r}")
+        raise FusionInputError(f"seconds must be a finite real number or None, got "
+                               f"{safe_repr(seconds)}")
     _check_epoch(epoch)
     try:  # an int beyond float64 (10**400) overflows in float(), as a date beyond 9999 does
         return epoch + timedelta(seconds=float(seconds))
@@ -99,7 +100,7 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
 
 def _check_epoch(epoch) -> None:
     if not isinstance(epoch, datetime):
-        raise FusionInputError(f"epoch must be a datetime, got {epoch!r}")
+        raise FusionInputError(f"epoch must be a datetime, got {safe_repr(epoch)}")
 
 
 # --- track ids -------------------------------------------------------------------------------
@@ -122,7 +123,7 @@ class TrackIds:
     def int_id(self, track_id: Hashable) -> int:
         """The integer bound to Stone Soup id `track_id` (bound now if new)."""
         if not hashable(track_id):
-            raise FusionInputError(f"track id {track_id!r} must be hashable (a string)")
+            raise FusionInputError(f"track id {safe_repr(track_id)} must be hashable (a string)")
         if track_id not in self._to_int:
             free = self._next if self._next <= _INT64_MAX else \
                 next(i for i in itertools.count() if i not in self._to_str)
@@ -132,7 +133,7 @@ class TrackIds:
     def track_id(self, int_id: int) -> Hashable:
         """The Stone Soup id bound to integer `int_id` (str(int_id), bound now, if new)."""
         if isinstance(int_id, bool) or not isinstance(int_id, numbers.Integral):
-            raise FusionInputError(f"int_id must be an integer, got {int_id!r}")
+            raise FusionInputError(f"int_id must be an integer, got {safe_repr(int_id)}")
         int_id = int(int_id)
         if not -_INT64_MAX - 1 <= int_id <= _INT64_MAX:  # fuzz I9: refused later, unnamed
             raise FusionInputError(f"int_id must fit in a signed 64-bit integer (as Estimates' "
@@ -143,7 +144,7 @@ class TrackIds:
 
     def _bind(self, track_id: Hashable, int_id: int) -> None:
         if track_id in self._to_int:
-            raise FusionInputError(f"track id {track_id!r} is already bound to "
+            raise FusionInputError(f"track id {safe_repr(track_id)} is already bound to "
                                    f"{self._to_int[track_id]}, not {int_id}")
         self._to_int[track_id], self._to_str[int_id] = int_id, track_id
         self._next = max(self._next, int_id + 1)
@@ -303,9 +304,10 @@ class OptimalChernoffUpdater(Updater):
         super().__init__(*args, **kwargs)
         if self.criterion not in CRITERIA:
             raise FusionInputError(f"criterion must be one of {CRITERIA}, got "
-                                   f"{self.criterion!r}")
+                                   f"{safe_repr(self.criterion)}")
         if self.backend not in BACKENDS:
-            raise FusionInputError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+            raise FusionInputError(f"backend must be one of {BACKENDS}, got "
+                                   f"{safe_repr(self.backend)}")
 
     def fuse_pair(self, measurement, prediction) -> FusionResult:
         """Optimal CI of [measurement, prediction] (states with mean and covar)."""
@@ -383,10 +385,10 @@ class StoneSoupTracker:
             raise FusionInputError(f"tracker must be a Stone Soup Tracker or an iterable of "
                                    f"(time, tracks), got {type(tracker).__name__}")
         if isinstance(ndim, bool) or not isinstance(ndim, numbers.Integral) or ndim < 1:
-            raise FusionInputError(f"ndim must be an integer >= 1, got {ndim!r}")
+            raise FusionInputError(f"ndim must be an integer >= 1, got {safe_repr(ndim)}")
         _check_epoch(epoch)
         if node is not None and not hashable(node):
-            raise FusionInputError(f"node must be hashable (a name), got {node!r}")
+            raise FusionInputError(f"node must be hashable (a name), got {safe_repr(node)}")
         self.tracker, self.ndim, self.epoch, self.node = tracker, int(ndim), epoch, node
         self.track_ids = TrackIds()
         self._steps = None
@@ -465,7 +467,8 @@ def _state_at(track: Track, time):
             if time is None or state.timestamp is None or state.timestamp < time:
                 return None
         except TypeError:  # a timezone-aware datetime and a naive one do not compare
-            raise FusionInputError(f"track {track.id!r} has a state at {state.timestamp!r}, "
-                                   f"which does not compare with the step's time {time!r} "
+            raise FusionInputError(f"track {safe_repr(track.id)} has a state at "
+                                   f"{safe_repr(state.timestamp)}, "
+                                   f"which does not compare with the step's time {safe_repr(time)} "
                                    "(one timezone-aware, the other naive?)") from None
     return None

@@ -53,7 +53,7 @@ def hashable(value) -> bool:
 
 def check_criterion(criterion) -> str:
     if criterion not in CRITERIA:
-        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+        raise FusionInputError(f"criterion must be one of {CRITERIA}, got {safe_repr(criterion)}")
     return criterion
 
 
@@ -137,13 +137,30 @@ def _reals(a: np.ndarray, name: str) -> np.ndarray:
     return out
 
 
+def safe_repr(value) -> str:
+    """What a refusal shows of a value the caller gave: its repr, an int of hundreds of
+    digits shortened (`short_repr`), and never an error of its own: the repr of an int
+    past Python's 4,300 digits raises ValueError, also inside a list or a tuple, and
+    options such as a criterion or a threshold of 10**5000 crashed with that ValueError
+    in place of their refusal (fuzz T4)."""
+    if isinstance(value, int):
+        return short_repr(value)
+    try:
+        return repr(value)
+    except ValueError:
+        return f"a {type(value).__name__} holding an integer of more than 4,300 digits"
+
+
 def short_repr(value) -> str:
     """repr(value), or its first 8 characters and its length where it is longer than 24 (an
     int of 400 digits, named in a one-line refusal); an int past Python's 4,300 digits of
     repr by its size alone (its repr raised ValueError inside the refusal: fuzz O3)."""
     if isinstance(value, int) and value.bit_length() > 14_000:
         return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
-    text = repr(value)
+    try:
+        text = repr(value)
+    except ValueError:  # an int past 4,300 digits inside it (`safe_repr`)
+        return f"a {type(value).__name__} holding an integer of more than 4,300 digits"
     return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
 
 

@@ -44,6 +44,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from fusion_opt import FusionInputError  # noqa: E402  (a study's own input, refused)
+from fusion_opt.validation import safe_repr  # noqa: E402
 
 from . import config as configs  # noqa: E402
 from . import meta, runner  # noqa: E402
@@ -80,7 +81,7 @@ def _module(name: str):
 
 def _missing(name: str) -> str:
     package, extra = NEEDS[name]
-    return (f"this study needs {package!r}, which is not installed: "
+    return (f"this study needs {safe_repr(package)}, which is not installed: "
             f"pip install -e '.[{extra}]'")
 
 

@@ -84,6 +84,7 @@ from fusion_opt.assemble import assemble
 from fusion_opt.backends import EXACT, REGISTRY, clarabel_direct, newton
 from fusion_opt.prepare import prepare
 from fusion_opt.scaling import conic_problem
+from fusion_opt.validation import safe_repr
 
 from . import config as configs
 from . import meta
@@ -179,14 +180,14 @@ def _check_sizes(config: dict) -> None:
 def _check_shapes(key: str, shapes) -> None:
     """shapes: a list of distinct [n, N] with n >= 1 and N >= 2 (empty: none run)."""
     if not isinstance(shapes, list):
-        raise configs.ConfigError(f"{key} must be a list of [n, N], got {shapes!r}")
+        raise configs.ConfigError(f"{key} must be a list of [n, N], got {safe_repr(shapes)}")
     for i, shape in enumerate(shapes):
         if not isinstance(shape, list) or len(shape) != 2:
-            raise configs.ConfigError(f"{key}[{i}] must be a list [n, N], got {shape!r}")
+            raise configs.ConfigError(f"{key}[{i}] must be a list [n, N], got {safe_repr(shape)}")
         configs.integer(f"{key}[{i}][0] (n)", shape[0], low=1)
         configs.integer(f"{key}[{i}][1] (N)", shape[1], low=2)
     if len({tuple(s) for s in shapes}) != len(shapes):
-        raise configs.ConfigError(f"{key} lists a shape more than once: {shapes!r}")
+        raise configs.ConfigError(f"{key} lists a shape more than once: {safe_repr(shapes)}")
 
 
 def instance(rng: np.random.Generator, N: int, n: int, kind: str) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 
 import fusion_opt as fo
 from fusion_opt.limits import fits as limits_fits
-from fusion_opt.validation import finite_real, short_repr
+from fusion_opt.validation import finite_real, safe_repr, short_repr
 
 
 class ConfigError(ValueError):
@@ -176,7 +176,7 @@ def fields(table, where: str, required: Collection[str],
     table holding every required field and no field outside required and optional."""
     label = f"[{where}]" if where else "the configuration"
     if not isinstance(table, Mapping):
-        raise ConfigError(f"{label} must be a table, got {table!r}")
+        raise ConfigError(f"{label} must be a table, got {safe_repr(table)}")
     unknown = sorted(set(table) - set(required) - set(optional))
     if unknown:
         raise ConfigError(f"{label} has unknown field(s) {unknown}; known: "
@@ -197,7 +197,7 @@ def _refuse(where: str, kind: str, value, why: str = "", **bounds) -> None:
     ops = {"low": ">=", "high": "<=", "above": ">"}
     rule = " and ".join(f"{ops[k]} {v}" for k, v in bounds.items() if v is not None)
     raise ConfigError(f"{where} must be {kind}{' ' + rule if rule else ''}"
-                      f"{f' ({why})' if why else ''}, got {value!r}")
+                      f"{f' ({why})' if why else ''}, got {safe_repr(value)}")
 
 
 def number(where: str, value, low: float | None = None, high: float | None = None, *,
@@ -244,18 +244,18 @@ def sources(value, where: str, member, item: str = "source") -> dict:
     checked by member(where, source) and none listed twice (`item` names them)."""
     if not isinstance(value, dict) or not value:
         raise ConfigError(f"{where} must be a table naming at least one processing node, got "
-                          f"{value!r}")
+                          f"{safe_repr(value)}")
     for name, members in value.items():
         for i, k in enumerate(items(f"{where}.{name}", members)):
             member(f"{where}.{name}[{i}]", k)
         if len(set(members)) != len(members):
-            raise ConfigError(f"{where}.{name} names a {item} twice: {members!r}")
+            raise ConfigError(f"{where}.{name} names a {item} twice: {safe_repr(members)}")
     return value
 
 
 def choice(where: str, value, options: Collection[str]) -> str:
     if not isinstance(value, str) or value not in options:
-        raise ConfigError(f"{where} must be one of {list(options)}, got {value!r}")
+        raise ConfigError(f"{where} must be one of {list(options)}, got {safe_repr(value)}")
     return value
 
 
@@ -264,7 +264,7 @@ def items(where: str, value, length: int | None = None) -> list:
     if not isinstance(value, list | tuple) or not value or (
             length is not None and len(value) != length):
         what = f"a list of {length} values" if length else "a non-empty list"
-        raise ConfigError(f"{where} must be {what}, got {value!r}")
+        raise ConfigError(f"{where} must be {what}, got {safe_repr(value)}")
     return list(value)
 
 
@@ -284,7 +284,7 @@ def build(cls, table: dict, section: str):
     field, a value of another type than the field's default, or a value the dataclass
     rejects raises ConfigError naming the section and field."""
     if not isinstance(table, Mapping):
-        raise ConfigError(f"{section} must be a table, got {table!r}")
+        raise ConfigError(f"{section} must be a table, got {safe_repr(table)}")
     defaults = {f.name: getattr(cls(), f.name) for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - set(defaults))
     if unknown:
@@ -302,19 +302,19 @@ def _like(where: str, value, default) -> None:
     """Refuse value unless it has the type and nesting of the field's default value."""
     if isinstance(default, bool):
         if not isinstance(value, bool):
-            raise ConfigError(f"{where} must be true or false, got {value!r}")
+            raise ConfigError(f"{where} must be true or false, got {safe_repr(value)}")
     elif isinstance(default, int):
         integer(where, value)
     elif isinstance(default, float):
         number(where, value)
     elif isinstance(default, str):
         if not isinstance(value, str):
-            raise ConfigError(f"{where} must be a string, got {value!r}")
+            raise ConfigError(f"{where} must be a string, got {safe_repr(value)}")
     elif dataclasses.is_dataclass(default):
         _like_dataclass(where, value, default)
     elif isinstance(default, tuple):
         if not isinstance(value, list | tuple):
-            raise ConfigError(f"{where} must be a list, got {value!r}")
+            raise ConfigError(f"{where} must be a list, got {safe_repr(value)}")
         if default:  # the first entry is the template of every entry
             for i, v in enumerate(value):
                 _like(f"{where}[{i}]", v, default[0])
@@ -330,7 +330,7 @@ def _like_dataclass(where: str, value, default) -> None:
     elif isinstance(value, list | tuple):
         pairs = zip(names, value, strict=False)
     else:
-        raise ConfigError(f"{where} must be a table with fields {names}, got {value!r}")
+        raise ConfigError(f"{where} must be a table with fields {names}, got {safe_repr(value)}")
     for key, v in pairs:
         _like(f"{where}.{key}", v, getattr(default, key))
 

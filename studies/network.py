@@ -84,6 +84,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 import fusion_opt as fo
+from fusion_opt.validation import safe_repr
 from trackers import kalman, metrics, rbmcda
 from trackers.scenarios import CrossingConfig, MultiTargetData, simulate_crossing
 
@@ -216,7 +217,8 @@ def _check_network(net, monitors: int) -> int:
 def _check_rules(rules) -> None:
     """[rules]: name -> {method, criterion}; criterion for the CI family only."""
     if not isinstance(rules, dict) or not rules:
-        raise configs.ConfigError(f"[rules] must name at least one fusion rule, got {rules!r}")
+        raise configs.ConfigError(f"[rules] must name at least one fusion rule, got "
+                                  f"{safe_repr(rules)}")
     for name, spec in rules.items():
         where = f"rules.{name}"
         configs.fields(spec, where, ("method",), ("criterion",))
@@ -226,7 +228,7 @@ def _check_rules(rules) -> None:
             configs.choice(f"{where}.criterion", spec["criterion"], ("trace", "logdet"))
         elif "criterion" in spec:
             raise configs.ConfigError(f"{where}.criterion applies to methods {list(CI_FAMILY)}"
-                                      f", not {spec['method']!r}")
+                                      f", not {safe_repr(spec['method'])}")
 
 
 def _check_figure(config) -> None:

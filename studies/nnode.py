@@ -35,6 +35,7 @@ from matplotlib.ticker import FuncFormatter
 
 import fusion_opt as fo
 from fusion_opt.prepare import MAX_CONDITION
+from fusion_opt.validation import safe_repr
 from trackers import kalman, metrics
 from trackers.models import turn_model
 
@@ -67,7 +68,8 @@ def _log10_range(where, x):
     low, high = (configs.number(f"{where}[{i}]", v)
                  for i, v in enumerate(configs.items(where, x, length=2)))
     if high < low:
-        raise configs.ConfigError(f"{where} must be [low, high] with low <= high, got {x!r}")
+        raise configs.ConfigError(f"{where} must be [low, high] with low <= high, got "
+                                  f"{safe_repr(x)}")
 
 
 SCALE_LOG10 = 100  # a static case's covariances stay within 10^-100..10^100
@@ -108,7 +110,7 @@ def check(config: dict) -> None:
     sweeps = config["sweeps"]
     if not isinstance(sweeps, dict) or "N" not in sweeps:
         raise configs.ConfigError("[sweeps] must be a table with a sweep over N (the figures "
-                                  f"plot it), got {sweeps!r}")
+                                  f"plot it), got {safe_repr(sweeps)}")
     nodes = [static["N"]]
     for name, spec in sweeps.items():
         nodes += _check_sweep(static, name, spec, backend)
@@ -176,7 +178,8 @@ def _check_scaling(sc) -> None:
                       for i, v in enumerate(values)]
         if len(set(values)) < 2:
             raise configs.ConfigError(f"scaling.{key} must hold two or more distinct sizes "
-                                      f"(the log-log slope is fitted to them), got {values!r}")
+                                      f"(the log-log slope is fitted to them), got "
+                                      f"{safe_repr(values)}")
     for i, b in enumerate(configs.items("scaling.backends", sc["backends"])):
         configs.backend(f"scaling.backends[{i}]", b, nodes=max(sizes["N"] + [8]))
         for key, shapes in (("N", [(4, N) for N in sizes["N"]]),
@@ -235,10 +238,11 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
         configs.choice(f"{where}.field", spec["field"], STATIC)
         if not isinstance(spec.get("fixed", {}), dict):
             raise configs.ConfigError(f"{where}.fixed must be a table of [static] fields, got "
-                                      f"{spec['fixed']!r}")
+                                      f"{safe_repr(spec['fixed'])}")
         configs.table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
         if spec["field"] in spec.get("fixed", {}):  # the sweep's values would replace it
-            raise configs.ConfigError(f"{where}.fixed sets {spec['field']!r}, the field the "
+            raise configs.ConfigError(f"{where}.fixed sets {safe_repr(spec['field'])}, the field "
+                                      f"the "
                                       "sweep varies")
         where += ".values"
     elif name not in STATIC:
@@ -248,7 +252,7 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
     field, values, fixed = sweep_spec(name, spec)
     values = configs.items(where, values)
     if len({str(v) for v in values}) != len(values):  # its results are kept by str(value)
-        raise configs.ConfigError(f"{where} lists a value more than once: {values!r}")
+        raise configs.ConfigError(f"{where} lists a value more than once: {safe_repr(values)}")
     for i, v in enumerate(values):
         STATIC[field](f"{where}[{i}]", v)
         _static_fits(f"{where}[{i}] = {v}", static | fixed | {field: v}, backend)
@@ -468,7 +472,7 @@ def _one_track(fused: fo.Estimates, name: str, reports: dict, dcfg: dict) -> fo.
         xy = np.array([r.means[0][:2] for r in reports.values()])
         spread = np.max(np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)))
         raise RuntimeError(
-            f"the fusion centre {name!r} made {len(fused)} tracks of the N = {len(xy)} "
+            f"the fusion centre {safe_repr(name)} made {len(fused)} tracks of the N = {len(xy)} "
             f"estimates of the one target: their positions lie up to {spread:.3g} m apart, "
             f"beyond dynamic.threshold = {dcfg['threshold']:.3g} (the filters' errors grow "
             f"with dynamic.dt and dynamic.q: raise the threshold above them)")

@@ -35,6 +35,8 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
+from fusion_opt.validation import safe_repr
+
 from .store import Store
 
 FIGURE_RUN = 0  # the run whose figure data the report draws
@@ -236,7 +238,7 @@ class _Dask:
         try:
             self._client = Client(scheduler)
         except (ValueError, OSError) as exc:  # a malformed or unreachable address
-            raise RunError(f"--scheduler {scheduler!r}: {exc}") from None
+            raise RunError(f"--scheduler {safe_repr(scheduler)}: {exc}") from None
         self._futures: list = []
         self._yielded: set[int] = set()
 

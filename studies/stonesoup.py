@@ -104,6 +104,7 @@ from stonesoup.updater.kalman import KalmanUpdater
 import fusion_opt as fo
 from fusion_opt import stonesoup as fs
 from fusion_opt.association import METHODS as ASSOCIATIONS
+from fusion_opt.validation import safe_repr
 from trackers import kalman, metrics
 from trackers.scenarios import check_reach
 
@@ -156,30 +157,31 @@ class Scenario:
         _positive_fields(self, ("steps", "dt", "q", "gate", "min_points", "max_misses"))
         if not self.targets or any(len(x) != NDIM for x in self.targets):
             raise ValueError(f"targets must be a non-empty list of [x, vx, y, vy], got "
-                             f"{self.targets!r}")
+                             f"{safe_repr(self.targets)}")
         if len(self.p_detect) < 2:
-            raise ValueError(f"p_detect must give two or more sensors, got {self.p_detect!r}")
+            raise ValueError(f"p_detect must give two or more sensors, got "
+                             f"{safe_repr(self.p_detect)}")
         for name in ("clutter_rate", "noise_sd"):
             if len(getattr(self, name)) != len(self.p_detect):
                 raise ValueError(f"{name} must give one value per sensor ({len(self.p_detect)}"
-                                 f", as p_detect), got {getattr(self, name)!r}")
+                                 f", as p_detect), got {safe_repr(getattr(self, name))}")
         for name, ok, rule in (("p_detect", lambda v: 0 < v <= 1, "in (0, 1]"),
                                ("clutter_rate", lambda v: v >= 0, ">= 0"),
                                ("noise_sd", lambda v: len(v) == 2 and 0 < min(v)
                                 and max(v) <= 1e100, "[sd_x, sd_y], each in (0, 1e100]")):
             for i, v in enumerate(getattr(self, name)):
                 if not ok(v):
-                    raise ValueError(f"{name}[{i}] must be {rule}, got {v!r}")
+                    raise ValueError(f"{name}[{i}] must be {rule}, got {safe_repr(v)}")
         if not self.steps * self.dt <= 1e10:  # Stone Soup's timestamps: datetimes, to 9999
             raise ValueError(f"steps x dt must be at most 1e10 s, got {self.steps} x "
-                             f"{self.dt!r}")
+                             f"{safe_repr(self.dt)}")
         if len(self.region) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in self.region):
             raise ValueError(f"region must be [[x0, x1], [y0, y1]] with x0 < x1 and y0 < y1, "
-                             f"got {self.region!r}")
+                             f"got {safe_repr(self.region)}")
         sd = min(min(v) for v in self.noise_sd)
         for i, (x, vx, y, vy) in enumerate(self.targets):
             if not np.isfinite([x, vx, y, vy]).all():
-                raise ValueError(f"targets[{i}] must be finite, got {self.targets[i]!r}")
+                raise ValueError(f"targets[{i}] must be finite, got {safe_repr(self.targets[i])}")
             check_reach(f"targets[{i}]", [x, y], float(np.hypot(vx, vy)), self.steps * self.dt,
                         sd, "the smallest noise_sd")
 
@@ -191,7 +193,7 @@ class Scenario:
 def _positive_fields(obj, names) -> None:
     for name in names:
         if not getattr(obj, name) > 0:
-            raise ValueError(f"{name} must be > 0, got {getattr(obj, name)!r}")
+            raise ValueError(f"{name} must be > 0, got {safe_repr(getattr(obj, name))}")
 
 
 def scenario(config: dict) -> Scenario:
@@ -231,7 +233,7 @@ def check(config: dict) -> None:
     if not abs(metrics["order"] * np.log10(metrics["cutoff"])) <= 100:  # OSPA sums them
         raise configs.ConfigError(                                   # to this power
             f"metrics.cutoff ^ metrics.order must lie in 1e-100..1e100, got "
-            f"{metrics['cutoff']!r} ^ {metrics['order']!r}")
+            f"{safe_repr(metrics['cutoff'])} ^ {safe_repr(metrics['order'])}")
     figure = configs.fields(config["figure"], "figure", ("rule",))
     configs.choice("figure.rule", figure["rule"], list(config["rules"]))
 
@@ -263,7 +265,8 @@ def _check_track_covariances(sc: Scenario) -> None:
 def _check_rules(rules, sensors: list[str]) -> None:
     """[rules]: name -> {method, criterion (optimal-chernoff, bci, mbci), omega (chernoff)}."""
     if not isinstance(rules, dict) or not rules:
-        raise configs.ConfigError(f"[rules] must name at least one fusion rule, got {rules!r}")
+        raise configs.ConfigError(f"[rules] must name at least one fusion rule, got "
+                                  f"{safe_repr(rules)}")
     for name, spec in rules.items():
         where = f"rules.{name}"
         if name in sensors:

@@ -28,6 +28,8 @@ from urllib.parse import quote
 
 import numpy as np
 
+from fusion_opt.validation import safe_repr
+
 from .config import config_hash
 
 SCHEMA = "fusion-opt studies store 3"
@@ -187,16 +189,17 @@ class Store:
         schema = self._db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
         if schema is None or schema[0] != json.dumps(SCHEMA):
             self._refuse(f"was not written by this version of the studies (schema "
-                         f"{schema and schema[0]}, expected {SCHEMA!r})")
+                         f"{schema and schema[0]}, expected {safe_repr(SCHEMA)})")
         meta = {}
         for key, value, checksum in self._db.execute("SELECT key, value, checksum FROM meta"):
             if _checksum("meta", key, value) != checksum:
-                self._refuse(f"its {key!r} record does not match its checksum (the store was "
+                self._refuse(f"its {safe_repr(key)} record does not match its checksum (the store "
+                             f"was "
                              "changed or damaged)")
             meta[key] = value
         for key in ("config", "wall_time_s", "invocations", "ledger"):
             if key not in meta:
-                self._refuse(f"lacks its {key!r} record")
+                self._refuse(f"lacks its {safe_repr(key)} record")
         rows = []
         for idx, result, figure, seconds, checksum in self._db.execute(
                 "SELECT idx, result, figure, seconds, checksum FROM runs"):

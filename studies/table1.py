@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 
 import fusion_opt as fo
+from fusion_opt.validation import safe_repr
 from trackers import kalman, metrics, rbpf
 from trackers.scenarios import Table1Config, simulate_table1
 
@@ -50,7 +51,8 @@ def check(config: dict) -> None:
     sc = scenario(config)
     if len(sc.p_detect) != 2:
         raise configs.ConfigError("scenario.p_detect must hold 2 detection probabilities "
-                                  f"(nodes a and b), got {config['scenario']['p_detect']!r}")
+                                  f"(nodes a and b), got "
+                                  f"{safe_repr(config['scenario']['p_detect'])}")
     configs.construct("scenario", _filter, sc, np.random.default_rng(0))
     check = configs.fields(config["check"], "check", ("backend", "steps"))
     configs.backend("check.backend", check["backend"], nodes=2)
@@ -61,7 +63,7 @@ def check(config: dict) -> None:
                   enumerate(configs.items("fusion.window", fusion["window"], length=2)))
     if end < start:
         raise configs.ConfigError(f"fusion.window must be [start, end] with start <= end, "
-                                  f"got {fusion['window']!r}")
+                                  f"got {safe_repr(fusion['window'])}")
 
 
 def estimates(config: dict, seed: np.random.SeedSequence):
@@ -215,7 +217,7 @@ def _check_note(config, results) -> str:
     worst = {row: [max(r[CHECK][row][k] for r in results) for k in ("abs", "max")]
              for row in CHECKED}
     return (f"Check: at {check['steps']} evenly spaced steps of every run, the rules with "
-            f"weights were fused again by {check['backend']!r} (unpolished). Objective "
+            f"weights were fused again by {safe_repr(check['backend'])} (unpolished). Objective "
             f"differences, {config['backend']} minus {check['backend']} (relative for "
             "trace, nats for log det), largest in absolute value / largest (<= 0: "
             f"{config['backend']} never worse): "

@@ -778,6 +778,38 @@ def test_bad_input_raises_an_error_naming_the_argument(call, name):
 
 # --- regressions of defects this fuzz found ---------------------------------------------
 
+_HUGE = -10**5000  # its repr raises ValueError (Python's 4,300-digit limit)
+
+
+@pytest.mark.parametrize("value", [_HUGE, [_HUGE], (1, _HUGE), {"a": _HUGE}],
+                         ids=["int", "list", "tuple", "dict"])
+def test_an_option_holding_an_int_of_5001_digits_is_refused_by_name(value):
+    """Fuzz T4: the refusal of such an option showed it with repr(), which raised
+    ValueError ("Exceeds the limit (4300 digits)") in place of the refusal, for a criterion,
+    backend, method, polish, threshold, dims, a lost link's name, min_sources, a count
+    and more; every refusal shows a value through `validation.safe_repr` now."""
+    from trackers import _checks, metrics
+
+    M, C = np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
+    e = fo.Estimates(M, C)
+    calls = [lambda: fo.bci(M, C, value), lambda: fo.bci(M, C, "trace", value),
+             lambda: fo.bci(M, C, polish=value), lambda: fo.fuse(M, C, value),
+             lambda: fo.fuse(M, C, "bci", extra=value), lambda: fo.warmup(value, 2),
+             lambda: fo.Estimates(M, C, time=value), lambda: fo.associate({"a": e}, value),
+             lambda: fo.associate({"a": e}, 1.0, value),
+             lambda: fo.associate({"a": e}, 1.0, dims=value),
+             lambda: fo.ProcessingNode(["a"], threshold=value),
+             lambda: fo.ProcessingNode(["a"], threshold=1.0, method=value),
+             lambda: fo.ProcessingNode(["a", "b"], threshold=1.0, min_sources=value),
+             lambda: fo.Network({}, {}).step({}, lost=value),
+             lambda: metrics.mse(M, M, value), lambda: metrics.id_switches([[value]]),
+             lambda: _checks.positive_int("n", value), lambda: _checks.boolean("x", value)]
+    for call in calls:
+        with pytest.raises(fo.FusionInputError) as err:
+            call()
+        assert "4300" not in str(err.value)
+
+
 def test_network_numbers_of_any_real_type_are_read_as_floats():
     """A Fraction or a Python int past 2**63 crashed np.isfinite in the network's checks
     (a TypeError naming nothing), and `associate` handed a float16 or longdouble threshold

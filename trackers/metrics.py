@@ -36,7 +36,7 @@ from scipy.stats import chi2
 
 from fusion_opt import FusionInputError
 from fusion_opt.linalg import row_norms
-from fusion_opt.validation import cholesky_ok, symmetrised
+from fusion_opt.validation import cholesky_ok, safe_repr, symmetrised
 from trackers import _checks
 
 
@@ -45,7 +45,7 @@ def _indices(components, n: int) -> np.ndarray:
     a = np.asarray(components)
     if a.dtype.kind not in "iu" or a.size == 0 or np.any(a < 0) or np.any(a >= n):
         raise FusionInputError(f"components must be integer indices in [0, {n}), got "
-                               f"{components!r}")
+                               f"{safe_repr(components)}")
     return a.reshape(-1)
 
 
@@ -180,7 +180,7 @@ def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, floa
     count = _checks.positive_int("count", count)
     level = _checks.probability("level", level)
     if not 0.0 < level < 1.0:  # 1 gives (0, inf), 0 an interval of width 0
-        raise FusionInputError(f"level must lie strictly between 0 and 1, got {level!r}")
+        raise FusionInputError(f"level must lie strictly between 0 and 1, got {safe_repr(level)}")
     if count * dim >= 10**300:
         raise FusionInputError("count x dim must be below 1e300")
     df = float(count * dim)  # a Python int above 2^63 would reach scipy as an object
@@ -388,7 +388,7 @@ def _id_sequence(name: str, value) -> np.ndarray:
     if a.dtype.kind not in "iu" or a.ndim != 1 \
             or (a.dtype.kind == "u" and a.max(initial=0) >= 2**63):
         raise FusionInputError(f"{name} must be a 1-D sequence of integer track ids, got "
-                               f"{value!r}")
+                               f"{safe_repr(value)}")
     return a.astype(np.int64)
 
 
@@ -404,5 +404,5 @@ def cardinality_error(n_estimated, n_true) -> np.ndarray:
         bad = (x < 0) | (x != np.round(x)) | (x >= 2.0**53)
         if bad.any():
             raise FusionInputError(f"{name} must be counts of targets (whole numbers from 0 "
-                                   f"to 2^53), got {x[bad][0].item()!r}")
+                                   f"to 2^53), got {safe_repr(x[bad][0].item())}")
     return a - b

@@ -25,7 +25,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt.prepare import MAX_CONDITION
-from fusion_opt.validation import short_repr
+from fusion_opt.validation import safe_repr, short_repr
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -121,14 +121,14 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
         try:
             discretize(turn_F(a), turn_L(), q * np.eye(2), dt)
         except FusionInputError as exc:
-            raise FusionInputError(f"{name}: turn rate {i} = {a!r}: {exc}") from None
+            raise FusionInputError(f"{name}: turn rate {i} = {safe_repr(a)}: {exc}") from None
     if noise_sd == 0.0 or len(rates) == 0:  # no window: no rate is drawn
         return
     worst = max(abs(a) for a in rates) + 40.0 * noise_sd
     try:
         discretize(turn_F(worst), turn_L(), q * np.eye(2), dt)
     except FusionInputError as exc:
-        raise FusionInputError(f"turn_noise_sd = {noise_sd!r}: the drawn turn rates reach "
+        raise FusionInputError(f"turn_noise_sd = {safe_repr(noise_sd)}: the drawn turn rates reach "
                                f"about {worst:.3g} rad/s: {exc}") from None
 
 
