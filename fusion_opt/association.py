@@ -41,7 +41,7 @@ from scipy.spatial.distance import cdist
 
 from .estimates import Estimates, track_ids
 from .limits import fits, limits
-from .linalg import jit
+from .linalg import jit, row_norms
 from .results import FusionInputError
 from .validation import finite_real, hashable, safe_repr
 
@@ -254,14 +254,30 @@ def pair_bytes(d: int) -> float:
 
 
 def _distance(diff: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distances |diff| over the last axis in units of threshold's power of two s (exact:
-    the squares stay in float64 for any threshold), and whether each is below threshold;
-    a difference that overflowed (inf) is never below it."""
+    """Distances |diff| over the last axis in units of threshold's power of two s (the
+    squares stay in float64 for any threshold; `_tiny` those whose squares underflow), and
+    whether each is below threshold; a difference that overflowed (inf) is never below
+    it."""
     s = _unit(threshold)
     with np.errstate(over="ignore", invalid="ignore"):
         scaled = diff / s
         d = np.sqrt(np.einsum("...k,...k->...", scaled, scaled))  # 5x np.linalg.norm's speed
+    _tiny(d, lambda tiny: diff[tiny], s)
     return d, d < threshold / s
+
+
+_TINY = 2.0**-480  # distances (units of s) below it may have squares under float64's range
+
+
+def _tiny(d: np.ndarray, differences, s: float) -> None:
+    """d (in units of s) again by `linalg.row_norms` where it is below _TINY: the squares
+    of a distance under about 1e-154 of the threshold underflow, and such pairs all tied at
+    0 in the join order, by index then, not by distance. differences(mask) gives their
+    differences (..., k) in the input's units. The other distances keep their bits (the
+    studies' groups with them)."""
+    tiny = d < _TINY
+    if tiny.any():
+        d[tiny] = row_norms(differences(tiny)) / s
 
 
 def _unit(threshold: float) -> float:
@@ -279,6 +295,7 @@ def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
     if np.isfinite(ps).all() and np.isfinite(cs).all():
         with np.errstate(over="ignore"):
             d = cdist(ps, cs)
+        _tiny(d, lambda tiny: p[tiny.nonzero()[0]] - c[tiny.nonzero()[1]], s)
         return d, d < threshold / s
     d, near = np.empty((len(p), len(c))), np.empty((len(p), len(c)), dtype=bool)
     for i in range(len(p)):  # a row at a time: the (m, K, d) differences at once made every

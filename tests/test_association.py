@@ -328,3 +328,19 @@ def test_assignment_counts_the_cells_of_the_path_that_runs(monkeypatch):
     groups = fo.associate({s: fo.Estimates(big, np.broadcast_to(np.eye(2), (m, 2, 2)))
                            for s in "ab"}, 0.25, "assignment")
     assert sorted(g.pairs for g in groups) == sorted((("a", i), ("b", i)) for i in range(m))
+
+
+@pytest.mark.parametrize("method", fo.association.METHODS)
+@pytest.mark.parametrize("scale", [1e-170, 1e-300])
+def test_distances_whose_squares_underflow_still_order_the_joins(method, scale):
+    """Source a reports two estimates 2 scale apart, source b one between them, 0.5 scale
+    from a's nearer one: b joins that one. Distances below about 1e-154 of the threshold
+    had squares of 0, tied, and b joined a's first estimate by index (both methods)."""
+    def at(xs):
+        return fo.Estimates(np.array([[x, 0.0] for x in xs]), np.tile(np.eye(2), (len(xs), 1, 1)))
+
+    for a, b, near in (([0.0, 2 * scale], [1.5 * scale], 1), ([2 * scale, 0.0], [0.5 * scale], 1),
+                       ([0.0, 2 * scale], [0.5 * scale], 0)):
+        groups = fo.associate({"a": at(a), "b": at(b)}, 1.0, method)
+        assert sorted(g.pairs for g in groups) == sorted([(("a", near), ("b", 0)),
+                                                          (("a", 1 - near),)])
