@@ -173,7 +173,7 @@ def _check_reports(reports) -> tuple[list, list[Estimates]]:
                                    f"{type(r).__name__}")
     ns = {name: r.n for name, r in reports.items()}
     if len(set(ns.values())) > 1:
-        raise FusionInputError(f"reports have different state dimensions n: {ns}")
+        raise FusionInputError(f"reports have different state dimensions n: {safe_repr(ns)}")
     return list(reports), list(reports.values())
 
 

@@ -154,7 +154,7 @@ def _request(method, criterion, backend, args: dict) -> Request:
     stray = sorted(set(args) - _ARGS[method])
     if stray:
         takes = sorted(_ARGS[method]) or "no other argument"
-        raise FusionInputError(f"method {safe_repr(method)} takes {takes}, not {stray}")
+        raise FusionInputError(f"method {safe_repr(method)} takes {takes}, not {safe_repr(stray)}")
     if method in rules.RULES:
         if backend is not None:
             raise FusionInputError(f"method {safe_repr(method)} has no weight solver: leave "
@@ -535,8 +535,9 @@ def _result(req, out, batch):
 
 def _memory(what, need, n, N, limit_name) -> str:
     limit = getattr(limits, limit_name)
-    return (f"n = {n}, N = {N}: {what} would need about {need / 2**30:.3g} GiB, over the "
-            f"limit of {limit / 2**30:.3g} GiB (fusion_opt.limits.{limit_name})")
+    return (f"n = {safe_repr(n)}, N = {safe_repr(N)}: {what} would need about "
+            f"{need / 2**30:.3g} GiB, over the limit of {limit / 2**30:.3g} GiB "
+            f"(fusion_opt.limits.{limit_name})")
 
 
 def _input_error(code, where, means, covs, names, batch, E) -> FusionInputError:

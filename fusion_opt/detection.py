@@ -240,5 +240,6 @@ def _node_count(n_nodes) -> int:
     if isinstance(n_nodes, bool) or not isinstance(n_nodes, numbers.Integral) or n_nodes < 1:
         raise FusionInputError(f"n_nodes must be an integer >= 1, got {safe_repr(n_nodes)}")
     if n_nodes > 10**7:
-        raise FusionInputError(f"n_nodes = {n_nodes} is more nodes than a fusion can hold")
+        raise FusionInputError(f"n_nodes = {safe_repr(n_nodes)} is more nodes than a fusion "
+                               "can hold")
     return int(n_nodes)

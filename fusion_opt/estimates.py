@@ -68,7 +68,7 @@ class Estimates:
         """No estimate of an n-dimensional state (a step with nothing to report)."""
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
             raise FusionInputError(f"n must be an integer >= 1, got {safe_repr(n)}")
-        fits(f"n = {n}", estimates_bytes(1, n))  # an estimate of a later step
+        fits(f"n = {safe_repr(n)}", estimates_bytes(1, n))  # an estimate of a later step
         return cls(np.zeros((0, n)), np.zeros((0, n, n)), None, time, node)
 
     def __len__(self) -> int:

@@ -106,8 +106,8 @@ def _simplex_weights(weights, N: int) -> np.ndarray:
     """weights (N,) as float64 on the simplex: finite, >= 0 and summing to 1 within 1e-9,
     or N times the rounding unit of a lower precision they came in (float32 weights of a
     float64 solution sum to 1 only within 1e-8); divided by their sum."""
-    given = np.asarray(weights).dtype
     w = real_array(weights, "weights").copy()  # C-contiguous, writable: one compiled type
+    given = np.asarray(weights).dtype  # (after the check: a ragged list raised in numpy)
     if w.shape != (N,):
         raise FusionInputError(f"weights must have shape ({N},), got {w.shape}")
     if not np.all(np.isfinite(w)):

@@ -83,8 +83,8 @@ class Network:
                                    f"{type(scans).__name__}")
         unknown = [name for name in scans if name not in self.trackers]
         if unknown:
-            raise FusionInputError(f"scans for unknown trackers {unknown}; the trackers are "
-                                   f"{list(self.trackers)}")
+            raise FusionInputError(f"scans for unknown trackers {safe_repr(unknown)}; the "
+                                   f"trackers are {safe_repr(list(self.trackers))}")
         lost = self._check_lost(lost, scans)
         time = check_time(time)  # before any node steps
         out, stepped = {}, []
@@ -102,7 +102,7 @@ class Network:
                     out[name] = _processing_step(name, node, reports, time)
                     stepped.append(name)
         except (FusionInputError, FusionSolverError) as exc:
-            said = f" (nodes {stepped} had stepped)" if stepped else ""
+            said = f" (nodes {safe_repr(stepped)} had stepped)" if stepped else ""
             raise in_context(exc, "", said) from exc
         return out
 
@@ -184,17 +184,16 @@ def _check_processing(processing, trackers) -> dict:
                                f"{type(processing).__name__}")
     both = [name for name in processing if name in trackers]
     if both:
-        raise FusionInputError(f"names {both} are both trackers and processing nodes")
+        raise FusionInputError(f"names {safe_repr(both)} are both trackers and processing nodes")
     for name, node in processing.items():
         if not isinstance(node, ProcessingNode):
-            raise FusionInputError(f"processing node {safe_repr(name)} must be a ProcessingNode, "
-                                   f"got "
-                                   f"{type(node).__name__}")
+            raise FusionInputError(f"processing node {safe_repr(name)} must be a "
+                                   f"ProcessingNode, got {type(node).__name__}")
         unknown = [s for s in node.sources if s not in trackers and s not in processing]
         if unknown:
-            raise FusionInputError(f"processing node {safe_repr(name)} has sources {unknown} that "
-                                   f"are "
-                                   f"neither trackers nor processing nodes")
+            raise FusionInputError(f"processing node {safe_repr(name)} has sources "
+                                   f"{safe_repr(unknown)} that are neither trackers nor "
+                                   "processing nodes")
     _refuse_shared(processing, "processing node")
     return dict(processing)
 
@@ -207,7 +206,7 @@ def _refuse_shared(nodes: Mapping, kind: str) -> None:
     shared = [names for names in names_of.values() if len(names) > 1]
     if shared:
         raise FusionInputError(f"one {kind} object is registered under several names: "
-                               f"{shared[0]}")
+                               f"{safe_repr(shared[0])}")
 
 
 def _topological_order(processing: dict) -> list:
@@ -231,7 +230,7 @@ def _topological_order(processing: dict) -> list:
                 names = [n for n, _ in path]
                 cycle = names[names.index(s):] + [s]
                 raise FusionInputError(f"processing nodes form a cycle, each a source of the "
-                                       f"one before it: {' -> '.join(map(repr, cycle))}")
+                                       f"one before it: {' -> '.join(map(safe_repr, cycle))}")
             else:
                 state[s] = "open"
                 path.append((s, iter(processing[s].sources)))

@@ -234,7 +234,7 @@ class ProcessingNode:
         bad = [s for s in sources if not hashable(s)]
         if bad:
             raise self._err(f"sources must be hashable names, got {safe_repr(bad)}")
-        repeated = sorted(repr(s) for s, k in Counter(sources).items() if k > 1)
+        repeated = sorted(safe_repr(s) for s, k in Counter(sources).items() if k > 1)
         if repeated:
             raise self._err(f"sources are listed more than once: {', '.join(repeated)}")
         return sources
@@ -286,8 +286,8 @@ class ProcessingNode:
         missing = [s for s in self.sources if s not in p_detect]
         unknown = [s for s in p_detect if s not in self._known]
         if missing or unknown:
-            raise self._err(f"p_detect must name exactly the sources: missing {missing}, "
-                            f"unknown {unknown}")
+            raise self._err(f"p_detect must name exactly the sources: missing "
+                            f"{safe_repr(missing)}, unknown {safe_repr(unknown)}")
         p = {s: finite_real(p_detect[s]) for s in self.sources}
         for s, value in p.items():
             if value is None or not 0.0 <= value <= 1.0:
@@ -328,8 +328,8 @@ class ProcessingNode:
                             f"{type(reports).__name__}")
         unknown = [s for s in reports if s not in self._known]
         if unknown:
-            raise self._err(f"reports from unknown sources {unknown}; its sources are "
-                            f"{list(self.sources)}")
+            raise self._err(f"reports from unknown sources {safe_repr(unknown)}; its sources "
+                            f"are {safe_repr(list(self.sources))}")
         ordered = {s: reports[s] for s in self.sources if s in reports}
         for s, r in ordered.items():
             if not isinstance(r, Estimates):
@@ -339,8 +339,8 @@ class ProcessingNode:
         n = self._n if self._n is not None else next(iter(ns.values()), None)
         other = {s: k for s, k in ns.items() if k != n}
         if other:
-            raise self._err(f"estimates of state dimension n = {n} expected, got {other} "
-                            f"from sources {list(other)}")
+            raise self._err(f"estimates of state dimension n = {n} expected, got "
+                            f"{safe_repr(other)} from sources {safe_repr(list(other))}")
         if n is None:
             raise self._err("no reports at its first step: the state dimension is unknown")
         check_dims(self.dims, n)
@@ -352,7 +352,7 @@ class ProcessingNode:
         if time is None:
             times = {s: r.time for s, r in reports.items() if r.time is not None}
             if len(set(times.values())) > 1:
-                raise self._err(f"reports carry different times {times}; pass time= to "
+                raise self._err(f"reports carry different times {safe_repr(times)}; pass time= to "
                                 f"stamp the fused estimates")
             time = next(iter(times.values()), None)
         try:

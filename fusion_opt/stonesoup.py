@@ -137,7 +137,7 @@ class TrackIds:
         int_id = int(int_id)
         if not -_INT64_MAX - 1 <= int_id <= _INT64_MAX:  # fuzz I9: refused later, unnamed
             raise FusionInputError(f"int_id must fit in a signed 64-bit integer (as Estimates' "
-                                   f"ids), got {int_id}")
+                                   f"ids), got {safe_repr(int_id)}")
         if int_id not in self._to_str:
             self._bind(str(int_id), int_id)
         return self._to_str[int_id]

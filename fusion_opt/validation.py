@@ -147,8 +147,15 @@ def safe_repr(value) -> str:
         return short_repr(value)
     try:
         return repr(value)
-    except ValueError:
+    except Exception as exc:  # noqa: BLE001 (a refusal must not fail on what it shows)
+        return _unshowable(value, exc)
+
+
+def _unshowable(value, exc: Exception) -> str:
+    """How a refusal names a value whose repr raised exc."""
+    if isinstance(exc, ValueError) and "4300" in str(exc):
         return f"a {type(value).__name__} holding an integer of more than 4,300 digits"
+    return f"a {type(value).__name__} whose repr fails ({type(exc).__name__})"
 
 
 def short_repr(value) -> str:
@@ -159,8 +166,8 @@ def short_repr(value) -> str:
         return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
     try:
         text = repr(value)
-    except ValueError:  # an int past 4,300 digits inside it (`safe_repr`)
-        return f"a {type(value).__name__} holding an integer of more than 4,300 digits"
+    except Exception as exc:  # noqa: BLE001 (an int past 4,300 digits inside it, ...)
+        return _unshowable(value, exc)
     return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
 
 

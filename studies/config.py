@@ -92,6 +92,8 @@ def _user_file(path, defaults: dict, named: frozenset = frozenset()) -> dict:
         with open(path, "rb") as fh:
             user = tomllib.load(fh)
     except (OSError, ValueError) as exc:  # TOMLDecodeError, UnicodeDecodeError (not UTF-8)
+        if "4300" in str(exc):  # Python's own limit on the digits of an int (fuzz T4)
+            exc = "an integer of more than 4,300 digits, which no field takes"
         raise ConfigError(f"--config {path}: {exc}") from None
     quick = user.get("quick", {})
     if not isinstance(quick, dict):

@@ -810,6 +810,42 @@ def test_an_option_holding_an_int_of_5001_digits_is_refused_by_name(value):
         assert "4300" not in str(err.value)
 
 
+def test_names_and_counts_of_5001_digits_are_refused_by_name(tmp_path):
+    """Fuzz T4, a helper's sweep of 3,100 calls: names (any hashable: here an int of 5,001
+    digits) and counts shown with str() in refusals of processing nodes, networks,
+    detection scales, Estimates.empty, the trackers' particle counts, the scenarios' step
+    counts and the memory limits' messages raised ValueError or OverflowError instead."""
+    from studies import config as configs
+    from trackers import rbpf, scenarios
+
+    big, M, C = 10**5000, np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
+    e2, e3 = fo.Estimates(M, C), fo.Estimates(np.zeros((1, 3)), np.eye(3)[None])
+    node = fo.ProcessingNode([big, "b"], threshold=1.0, method="bci")
+    model = scenarios.Table1Config().filter_model()
+    calls = [lambda: fo.detection_scales(0.9, 0.5, n_nodes=big), lambda: fo.Estimates.empty(big),
+             lambda: fo.associate({big: e2, "b": e3}, 1.0),
+             lambda: fo.ProcessingNode([big, big], threshold=1.0, method="bci"),
+             lambda: fo.ProcessingNode(["a"], threshold=1.0, p_detect={"a": 0.9, big: 0.8},
+                                       growth=1.1),
+             lambda: node.step({big: e2, "c": e2}), lambda: node.step({big: e2, "b": e3}),
+             lambda: fo.Network({big: None}, {}),
+             lambda: rbpf.RBPF(model, np.zeros(model.n), np.eye(model.n),
+                               rng=np.random.default_rng(0), n_particles=big),
+             lambda: scenarios.Table1Config(n_steps=big),
+             lambda: scenarios.CrossingConfig(n_steps=big),
+             lambda: scenarios.CrossingConfig(n_targets=big)]
+    for call in calls:
+        with pytest.raises(fo.FusionInputError) as err:
+            call()
+        assert "4300" not in str(err.value)
+    with pytest.raises(fo.FusionSolverError, match="an integer of about 5001 digits"):
+        fo.warmup(2, big)
+    path = tmp_path / "c.toml"
+    path.write_text("runs = 1" + "0" * 5000 + "\n")
+    with pytest.raises(configs.ConfigError, match="an integer of more than 4,300 digits"):
+        configs.load("table1", path=path)
+
+
 def test_network_numbers_of_any_real_type_are_read_as_floats():
     """A Fraction or a Python int past 2**63 crashed np.isfinite in the network's checks
     (a TypeError naming nothing), and `associate` handed a float16 or longdouble threshold

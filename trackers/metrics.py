@@ -42,7 +42,7 @@ from trackers import _checks
 
 def _indices(components, n: int) -> np.ndarray:
     """``components`` as integer state indices in [0, n)."""
-    a = np.asarray(components)
+    a = np.asarray(None if isinstance(components, str | bytes) else components)
     if a.dtype.kind not in "iu" or a.size == 0 or np.any(a < 0) or np.any(a >= n):
         raise FusionInputError(f"components must be integer indices in [0, {n}), got "
                                f"{safe_repr(components)}")

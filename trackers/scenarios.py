@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion_opt import FusionInputError
+from fusion_opt.limits import as_count
 from fusion_opt.prepare import MAX_CONDITION
 from fusion_opt.validation import safe_repr, short_repr
 from trackers import _checks
@@ -152,9 +153,9 @@ def _check_shared(cfg) -> None:
     a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
     _checks.positive("dt", cfg.dt)
     _checks.positive_int("n_steps", cfg.n_steps)
-    if not np.isfinite(cfg.dt * cfg.n_steps):
+    if not np.isfinite(cfg.dt * as_count(cfg.n_steps)):
         raise FusionInputError(f"dt x n_steps must be a finite time, got {cfg.dt} x "
-                               f"{cfg.n_steps}")
+                               f"{safe_repr(cfg.n_steps)}")
     _checks.positive("q", cfg.q)
     _check_region("region", cfg.region)
     _checks.nonnegative("turn_noise_sd", cfg.turn_noise_sd)
@@ -597,9 +598,10 @@ class CrossingConfig:
                                    f"({len(self.p_detect)}, as p_detect), got "
                                    f"{len(self.clutter_rate)}")
         # the truth and, per node, the detections and clutter of a run
-        points = self.n_steps * (len(self.p_detect) * self.n_targets + sum(self.clutter_rate))
+        steps, targets = as_count(self.n_steps), as_count(self.n_targets)
+        points = steps * (len(self.p_detect) * targets + sum(self.clutter_rate))
         _checks.fits("n_steps, n_targets and clutter_rate",
-                     48.0 * self.n_targets * self.n_steps + 300.0 * points)
+                     48.0 * targets * steps + 300.0 * points)
         self.filter_model()  # dt, q and meas_sd give a model float64 holds
 
     def filter_model(self) -> LinearGaussian:
