@@ -178,6 +178,8 @@ def test_set_errors_against_brute_force_and_each_metric_alone():
     for c in (2**2000, 10**5000):
         with pytest.raises(FusionInputError, match="c must be a finite positive number, got"):
             metrics.ospa(E, E, c, 2)
+    from trackers import _checks  # such an int is +-inf in the trackers' scalar checks
+    assert _checks.real("x", -(2**2000)) == -np.inf and _checks.real("x", 2**2000) == np.inf
     with pytest.raises(FusionInputError, match="p must be >= 1"):
         metrics.set_errors(E, E, 1.0, 0.5)
 

@@ -50,7 +50,7 @@ def real(name: str, value) -> float:
     try:
         return float(value)
     except OverflowError:  # an int or a Fraction past float64 (2**2000, fuzz T3): +-inf,
-        return float(np.copysign(np.inf, value > 0))  # which the callers refuse by range
+        return np.inf if value > 0 else -np.inf  # which the callers refuse by range
 
 
 def finite(name: str, value) -> float:
