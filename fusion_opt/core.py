@@ -158,8 +158,7 @@ def _request(method, criterion, backend, args: dict) -> Request:
     if method in rules.RULES:
         if backend is not None:
             raise FusionInputError(f"method {safe_repr(method)} has no weight solver: leave "
-                                   f"backend "
-                                   f"unset (got {safe_repr(backend)})")
+                                   f"backend unset (got {safe_repr(backend)})")
         return Request(method, criterion, None, polish, args)
     if backend is None:
         backend = DEFAULT_BACKEND

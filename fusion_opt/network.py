@@ -162,8 +162,7 @@ def _tracker_step(name, tracker, scan) -> Estimates:
         raise in_context(exc, f"tracker {safe_repr(name)}: ") from exc  # network knows it
     if not isinstance(estimates, Estimates):
         raise FusionInputError(f"tracker {safe_repr(name)} returned {type(estimates).__name__} "
-                               f"from "
-                               f"step, not an Estimates")
+                               f"from step, not an Estimates")
     return estimates
 
 

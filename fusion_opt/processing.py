@@ -246,16 +246,14 @@ class ProcessingNode:
         self._check_choice("method", method, FUSE_METHODS)
         if method in PAIRWISE and len(self.sources) > 2:
             raise self._err(f"method {safe_repr(method)} fuses pairs, but {len(self.sources)} "
-                            f"sources "
-                            f"can form larger groups: use 'bci' or 'mbci'")
+                            f"sources can form larger groups: use 'bci' or 'mbci'")
         return method
 
     def _check_backend(self, backend) -> str | None:
         if self.method not in CI_FAMILY:
             if backend is not None:
                 raise self._err(f"method {safe_repr(self.method)} has no weight solver: leave "
-                                f"backend "
-                                f"unset (got {safe_repr(backend)})")
+                                f"backend unset (got {safe_repr(backend)})")
             return None
         backend = DEFAULT_BACKEND if backend is None else backend
         self._check_choice("backend", backend, BACKENDS)
@@ -292,8 +290,7 @@ class ProcessingNode:
         for s, value in p.items():
             if value is None or not 0.0 <= value <= 1.0:
                 raise self._err(f"p_detect of source {safe_repr(s)} must be a number in [0, 1], "
-                                f"got "
-                                f"{safe_repr(p_detect[s])}")
+                                f"got {safe_repr(p_detect[s])}")
         value = finite_real(chi)
         if growth is not None:
             if value != 1.0:

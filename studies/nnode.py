@@ -242,8 +242,7 @@ def _check_sweep(static: dict, name: str, spec, backend: str) -> list[int]:
         configs.table(static | spec.get("fixed", {}), f"{where}.fixed", STATIC)
         if spec["field"] in spec.get("fixed", {}):  # the sweep's values would replace it
             raise configs.ConfigError(f"{where}.fixed sets {safe_repr(spec['field'])}, the field "
-                                      f"the "
-                                      "sweep varies")
+                                      f"the sweep varies")
         where += ".values"
     elif name not in STATIC:
         raise configs.ConfigError(f"{where} sweeps no field of [static] (one of "

@@ -194,8 +194,7 @@ class Store:
         for key, value, checksum in self._db.execute("SELECT key, value, checksum FROM meta"):
             if _checksum("meta", key, value) != checksum:
                 self._refuse(f"its {safe_repr(key)} record does not match its checksum (the store "
-                             f"was "
-                             "changed or damaged)")
+                             f"was changed or damaged)")
             meta[key] = value
         for key in ("config", "wall_time_s", "invocations", "ledger"):
             if key not in meta:
