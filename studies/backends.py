@@ -4,7 +4,7 @@ otherwise use: time, accuracy and certificate per solver and shape, and the issu
 For every (n, N, criterion, kind) of the config, `instances` seeded problems (kind "random":
 P_i = A A^T / n + 0.01 I with A standard normal; "ill-conditioned": eigenvalues log-uniform
 over 1e-6..1e6 in a random rotation, each node scaled by 10^U(-3, 3)) are solved by every
-solver in turn (starting from another on each problem, `_loop`), in one process. A solver
+solver in turn (in a seeded random order per problem, `_loop`), in one process. A solver
 is one call a user makes:
 
     fo.bci(means, covs, criterion, backend)                    every backend, N >= 2
@@ -356,15 +356,18 @@ def _single_cell(rng, mode, n, N, crit, kind, config) -> tuple[list[dict], list[
 
 def _loop(problems, crit, solvers, mode, config, first) -> list[_Runs]:
     """The runs of each solver on problems (means (N, n), covs (N, n, n)), each solved by
-    every solver in turn, from the k-th solver on the k-th problem: the first call after
-    another solver's finds cold caches (measured: 2.5x the time of the next for newton
-    at n = 4 after Clarabel), and rotating shares that cost out evenly. With `first`, one
-    more call on the first problem, reported apart (the shape's first call)."""
+    every solver in turn, in an order drawn anew for each problem (seeded by its index):
+    the first call after another solver's finds cold caches (measured: 2.5x the time of
+    the next for newton at n = 4 after Clarabel), and how cold depends on that solver. A
+    rotation of one fixed order, as before 2026-11-27, gave each solver the same
+    predecessor on every problem: fo.bci "closed-form" always followed fo.ci "newton", which
+    runs the same compiled code, and came out 1.2 times faster than fo.bci "newton", which
+    always followed the fast-ci peer. With `first`, one more call on the first problem,
+    reported apart (the shape's first call)."""
     runs = [_Runs(s, mode) for s in solvers]
     for k, (means, covs) in enumerate(problems):
-        start = k % len(runs)
-        for r in runs[start:] + runs[:start]:
-            _solve(r, means, covs, crit, config, first=first and k == 0)
+        for i in np.random.default_rng(k).permutation(len(runs)):
+            _solve(runs[i], means, covs, crit, config, first=first and k == 0)
     return runs
 
 
