@@ -29,7 +29,7 @@ import numbers
 from dataclasses import dataclass
 
 from .results import FusionInputError
-from .validation import safe_repr
+from .validation import safe_repr, wide_float
 
 _GIB = 2**30
 
@@ -60,18 +60,9 @@ class Limits:
 limits = Limits()
 
 
-def as_count(x) -> float:
-    """A count (an int of any size) as a float for the byte estimates below: inf past
-    float64 (an int of 5,001 digits raised OverflowError in them: fuzz T4)."""
-    try:
-        return float(x)
-    except OverflowError:
-        return float("inf")
-
-
 def conic_bytes(n: int, N: int) -> float:
     """Estimated bytes of a Clarabel solve for state dimension n and N nodes."""
-    n, N = as_count(n), as_count(N)
+    n, N = wide_float(n), wide_float(N)
     psd = n * (2 * n + 1)
     return 8.0 * (4.0 * psd * psd + 4.0 * N * psd)
 
@@ -81,14 +72,14 @@ def batch_bytes(B: int, N: int, n: int) -> float:
     of its means and covariances, their factors, a rule's scaled covariances and the
     results, about 4 n^2 + 2 n + 4 doubles a node; checked against working_memory before
     anything is copied."""
-    B, N, n = as_count(B), as_count(N), as_count(n)
+    B, N, n = wide_float(B), wide_float(N), wide_float(n)
     return 8.0 * B * N * (4.0 * n * n + 2.0 * n + 4.0)
 
 
 def working_bytes(n: int, N: int, backend: str | None = None) -> float:
     """Estimated bytes of the native solvers' work arrays for one problem, and of SLSQP's
     workspace for backend "slsqp"."""
-    n, N = as_count(n), as_count(N)
+    n, N = wide_float(n), wide_float(N)
     slsqp = 10.0 * (N + 1) ** 2 if backend == "slsqp" else 0.0
     return 8.0 * (3.0 * (n * n + 1) * N + 5.0 * N * n * n + slsqp)
 
@@ -97,7 +88,7 @@ def joint_bytes(n: int, N: int) -> float:
     """Estimated bytes of known-cross's work arrays for one problem: the joint whitened
     node by node and its Cholesky factor, (N n)^2 doubles each (the copy of cross a batch
     may need is counted with the batch's arrays, `core.over_memory`)."""
-    n, N = as_count(n), as_count(N)
+    n, N = wide_float(n), wide_float(N)
     return 8.0 * 2.0 * (N * n) ** 2
 
 
@@ -105,7 +96,7 @@ def estimates_bytes(m: int, n: int) -> float:
     """Estimated bytes of an Estimates of m estimates of an n-dimensional state as it is
     built: its copies of the means and ids, and of the covariances three times (the
     checks' symmetrised stack, its frozen copy and the finiteness mask, counted as one)."""
-    m, n = as_count(m), as_count(n)
+    m, n = wide_float(m), wide_float(n)
     return 8.0 * m * (n + 1 + 3.0 * n * n)
 
 

@@ -137,6 +137,16 @@ def _reals(a: np.ndarray, name: str) -> np.ndarray:
     return out
 
 
+def wide_float(x) -> float:
+    """A real number (an int or a Fraction of any size) as a float, +-inf past float64's
+    range, where float() raises OverflowError (an int of 5,001 digits as a count or a
+    cut-off: fuzz T3, T4); the callers refuse it by range."""
+    try:
+        return float(x)
+    except OverflowError:
+        return float("inf") if x > 0 else float("-inf")
+
+
 def safe_repr(value) -> str:
     """What a refusal shows of a value the caller gave: its repr, an int of hundreds of
     digits shortened (`short_repr`), and never an error of its own: the repr of an int

@@ -17,7 +17,6 @@ from fusion_opt import FusionInputError
 from fusion_opt import validation as _fo
 from fusion_opt.estimates import check_exact_time, check_forward
 from fusion_opt.limits import fits  # noqa: F401 (the trackers call _checks.fits)
-from fusion_opt.validation import safe_repr
 
 
 def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.ndarray:
@@ -46,31 +45,29 @@ def real(name: str, value) -> float:
         isinstance(value, numbers.Real)
         or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")
     ):
-        raise FusionInputError(f"{name} must be a real number, got {safe_repr(value)}")
-    try:
-        return float(value)
-    except OverflowError:  # an int or a Fraction past float64 (2**2000, fuzz T3): +-inf,
-        return np.inf if value > 0 else -np.inf  # which the callers refuse by range
+        raise FusionInputError(f"{name} must be a real number, got {_fo.safe_repr(value)}")
+    return _fo.wide_float(value)  # an int past float64 (2**2000): +-inf, refused by range
 
 
 def finite(name: str, value) -> float:
     x = real(name, value)
     if not np.isfinite(x):
-        raise FusionInputError(f"{name} must be a finite real number, got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be a finite real number, got {_fo.safe_repr(value)}")
     return x
 
 
 def nonnegative(name: str, value) -> float:
     x = real(name, value)
     if not (np.isfinite(x) and x >= 0.0):
-        raise FusionInputError(f"{name} must be a finite number >= 0, got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be a finite number >= 0, got {_fo.safe_repr(value)}")
     return x
 
 
 def positive(name: str, value) -> float:
     x = real(name, value)
     if not (np.isfinite(x) and x > 0.0):
-        raise FusionInputError(f"{name} must be a finite positive number, got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be a finite positive number, got "
+                               f"{_fo.safe_repr(value)}")
     return x
 
 
@@ -80,27 +77,28 @@ def variance(name: str, sd) -> float:
     s = positive(name, sd)
     v = s * s
     if not np.finfo(float).tiny <= v < np.inf:
-        raise FusionInputError(f"{name} = {safe_repr(sd)}: its square, the variance, is outside "
-                               "float64's range")
+        raise FusionInputError(f"{name} = {_fo.safe_repr(sd)}: its square, the variance, is "
+                               "outside float64's range")
     return v
 
 
 def probability(name: str, value) -> float:
     p = real(name, value)
     if not 0.0 <= p <= 1.0:  # False for NaN
-        raise FusionInputError(f"{name} must be a probability in [0, 1], got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be a probability in [0, 1], got "
+                               f"{_fo.safe_repr(value)}")
     return p
 
 
 def positive_int(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise FusionInputError(f"{name} must be an integer >= 1, got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be an integer >= 1, got {_fo.safe_repr(value)}")
     return int(value)
 
 
 def boolean(name: str, value) -> bool:
     if not isinstance(value, bool | np.bool_):
-        raise FusionInputError(f"{name} must be True or False, got {safe_repr(value)}")
+        raise FusionInputError(f"{name} must be True or False, got {_fo.safe_repr(value)}")
     return bool(value)
 
 

@@ -206,7 +206,7 @@ def _point_sets(X, Y):
 
 
 def _assignment_cost(D, c, p) -> tuple[float, float]:
-    """(u, S) for the distances D (m, k) of two point sets, m, k >= 1, cut at c: S = min
+    """(u, S) for the distances d_c (m, k) of two point sets, m, k >= 1 (`_distances`): S = min
     over assignments of sum (d_c(x, y) / u)^p over the min(m, k) assigned pairs, in units
     u chosen so that no c, p or distance reaches beyond float64: u = c when the sets differ
     in size (a term of 1 per unassigned point then dominates), else the largest distance
@@ -215,7 +215,6 @@ def _assignment_cost(D, c, p) -> tuple[float, float]:
     all distances, every assigned term did at p = 400 and OSPA was 0, fuzz N2). u = 0
     where every distance is."""
     m, k = D.shape
-    D = np.minimum(D, c)
     if m != k:
         (r, s), C = _assigned(D, c, p, k)
         return c, float(C[r, s].sum())
@@ -246,14 +245,14 @@ def _assigned(D, u, p, k):
     return linear_sum_assignment(C), C
 
 
-def _distances(X, Y) -> np.ndarray | None:
-    """(m, k) Euclidean distances, without squares that over- or underflow
-    (`fusion_opt.linalg.row_norms`); inf where a difference overflows (beyond any
-    cut-off). None when a set is empty."""
+def _distances(X, Y, c) -> np.ndarray | None:
+    """(m, k) distances cut at c, d_c = min(c, ||x - y||), the only ones the metrics use:
+    Euclidean without squares that over- or underflow (`fusion_opt.linalg.row_norms`; a
+    difference that overflows is beyond any cut-off). None when a set is empty."""
     if X.shape[0] == 0 or Y.shape[0] == 0:
         return None
     with np.errstate(over="ignore", invalid="ignore"):
-        return row_norms(X[:, None, :] - Y[None, :, :])
+        return np.minimum(row_norms(X[:, None, :] - Y[None, :, :]), c)
 
 
 def _order(c, p) -> tuple[float, float]:
@@ -279,7 +278,7 @@ def ospa(X, Y, c: float, p: float) -> float:
     """
     X, Y = _point_sets(X, Y)
     c, p = _order(c, p)
-    return _ospa(_cost(_distances(X, Y), c, p), _sizes(X, Y), p)
+    return _ospa(_cost(_distances(X, Y, c), c, p), _sizes(X, Y), p)
 
 
 def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
@@ -288,7 +287,7 @@ def gospa(X, Y, c: float, p: float, alpha: float = 2.0) -> float:
     X, Y = _point_sets(X, Y)
     c, p = _order(c, p)
     alpha = _alpha(alpha)
-    return _gospa(_cost(_distances(X, Y), c, p), _sizes(X, Y), p, alpha, c)
+    return _gospa(_cost(_distances(X, Y, c), c, p), _sizes(X, Y), p, alpha, c)
 
 
 def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -296,7 +295,8 @@ def match(X, Y, c: float) -> tuple[np.ndarray, np.ndarray]:
     cost d_c = min(c, ||x - y||) (OSPA's assignment of order p = 1) that are closer than
     c: (rows of X (K,), rows of Y (K,)), K <= min(m, k)."""
     X, Y = _point_sets(X, Y)
-    return _match(_distances(X, Y), _checks.positive("c", c))
+    c = _checks.positive("c", c)
+    return _match(_distances(X, Y, c), c)
 
 
 class SetErrors(NamedTuple):
@@ -318,7 +318,7 @@ def set_errors(X, Y, c: float, p: float, alpha: float = 2.0) -> SetErrors:
     X, Y = _point_sets(X, Y)
     c, p = _order(c, p)
     alpha = _alpha(alpha)
-    D, sizes = _distances(X, Y), _sizes(X, Y)
+    D, sizes = _distances(X, Y, c), _sizes(X, Y)
     cost = _cost(D, c, p)
     return SetErrors(_ospa(cost, sizes, p), _gospa(cost, sizes, p, alpha, c), *_match(D, c))
 
@@ -330,7 +330,7 @@ def _sizes(X, Y) -> tuple[int, int]:
 
 
 def _cost(D, c, p) -> tuple[float, float]:
-    """`_assignment_cost` of distances D, or (c, 0) where a set is empty (D None)."""
+    """`_assignment_cost` of the cut distances D, or (c, 0) where a set is empty (D None)."""
     return (c, 0.0) if D is None else _assignment_cost(D, c, p)
 
 
@@ -359,10 +359,11 @@ def _gospa(cost, sizes, p, alpha, c) -> float:
 
 
 def _match(D, c) -> tuple[np.ndarray, np.ndarray]:
-    """`match`'s pairs from the distances D (None: a set is empty)."""
+    """`match`'s pairs from the cut distances D (None: a set is empty): those of the
+    assignment closer than c."""
     if D is None:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    r, s = linear_sum_assignment(np.minimum(D, c))
+    r, s = linear_sum_assignment(D)
     keep = D[r, s] < c
     return r[keep], s[keep]
 

@@ -62,8 +62,7 @@ from scipy.special import gammaincc
 
 from fusion_opt import FusionInputError
 from fusion_opt.estimates import Estimates
-from fusion_opt.limits import as_count
-from fusion_opt.validation import safe_repr
+from fusion_opt.validation import safe_repr, wide_float
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
@@ -382,7 +381,7 @@ class RBMCDA:
         N = _checks.positive_int("n_particles", n_particles)
         # the particles' 4 first slots and a step's temporaries (about 8 copies)
         _checks.fits(f"n_particles = {safe_repr(N)}",
-                     8.0 * 8 * 4 * as_count(N) * (model.n**2 + model.n + 3))
+                     8.0 * 8 * 4 * wide_float(N) * (model.n**2 + model.n + 3))
         table, log_target = event_log_priors(birth_prob, clutter_prior, clutter_density)
         self.params = RBMCDAParams(
             model, _checks.read_only(m0), _checks.read_only(P0), _checks.positive("dt", dt),

@@ -41,8 +41,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt.estimates import Estimates
-from fusion_opt.limits import as_count
-from fusion_opt.validation import safe_repr
+from fusion_opt.validation import safe_repr, wide_float
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.resampling import end_of_step, logsumexp
@@ -177,7 +176,7 @@ class RBPF:
         self._rng = _checks.generator("rng", rng)
         N = _checks.positive_int("n_particles", n_particles)
         _checks.fits(f"n_particles = {safe_repr(N)}",
-                     8.0 * 8 * as_count(N) * (model.n**2 + model.n + 1))
+                     8.0 * 8 * wide_float(N) * (model.n**2 + model.n + 1))
         cp = _checks.probability("clutter_prior", clutter_prior)
         cd = _checks.positive("clutter_density", clutter_density)
         thr = _checks.probability("resample_threshold", resample_threshold) * N

@@ -24,9 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion_opt import FusionInputError
-from fusion_opt.limits import as_count
 from fusion_opt.prepare import MAX_CONDITION
-from fusion_opt.validation import safe_repr, short_repr
+from fusion_opt.validation import safe_repr, short_repr, wide_float
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -153,7 +152,7 @@ def _check_shared(cfg) -> None:
     a run's arrays (about 5 + 12 per node floats a step) must fit fusion_opt.limits."""
     _checks.positive("dt", cfg.dt)
     _checks.positive_int("n_steps", cfg.n_steps)
-    if not np.isfinite(cfg.dt * as_count(cfg.n_steps)):
+    if not np.isfinite(cfg.dt * wide_float(cfg.n_steps)):
         raise FusionInputError(f"dt x n_steps must be a finite time, got {cfg.dt} x "
                                f"{safe_repr(cfg.n_steps)}")
     _checks.positive("q", cfg.q)
@@ -598,7 +597,7 @@ class CrossingConfig:
                                    f"({len(self.p_detect)}, as p_detect), got "
                                    f"{len(self.clutter_rate)}")
         # the truth and, per node, the detections and clutter of a run
-        steps, targets = as_count(self.n_steps), as_count(self.n_targets)
+        steps, targets = wide_float(self.n_steps), wide_float(self.n_targets)
         points = steps * (len(self.p_detect) * targets + sum(self.clutter_rate))
         _checks.fits("n_steps, n_targets and clutter_rate",
                      48.0 * targets * steps + 300.0 * points)
