@@ -479,13 +479,9 @@ def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
     """(what, bytes, name of its limit in fusion_opt.limits) of B problems' memory over its
     limit (`check_memory`), or None: the batch's arrays and the solver's work arrays
     together against working_memory, Clarabel's KKT system against conic_memory. The
-    numbers come first and the words only for one over its limit (a call's fixed cost:
-    0.55 against 1.4 us)."""
+    numbers come first and the words only for one over its limit."""
     cross = req.method == "known-cross"  # its cross, copied whole where it is not float64
-    work = joint_bytes(n, N) if cross else \
-        0.0 if req.backend is None else working_bytes(n, N, req.backend)
-    arrays = batch_bytes(B, N, n) + (8.0 * B * (N * n) ** 2 if cross else 0.0)  # (fuzz L9)
-    conic = conic_bytes(n, N) if req.backend in _CONIC else 0.0
+    arrays, work, conic = _bytes(cross, req.backend, n, N, B)
     if arrays + work <= limits.working_memory and conic <= limits.conic_memory:
         return None
     if arrays + work > limits.working_memory:  # allocated at once: their sum (fuzz O7:
@@ -495,6 +491,17 @@ def over_memory(req, n, N, B=1) -> tuple[str, float, str] | None:
                 " and the weight solver's work arrays"
         return what, arrays + work, "working_memory"
     return "Clarabel's KKT system", conic, "conic_memory"
+
+
+@functools.lru_cache(maxsize=256)
+def _bytes(cross: bool, backend: str | None, n: int, N: int, B: int):
+    """The bytes of `over_memory` (a batch's arrays, the solver's work arrays, a conic
+    solve), per request kind and shape: computed anew they cost a small fusion 0.8 us."""
+    work = joint_bytes(n, N) if cross else \
+        0.0 if backend is None else working_bytes(n, N, backend)
+    arrays = batch_bytes(B, N, n) + (8.0 * B * (N * n) ** 2 if cross else 0.0)  # (fuzz L9)
+    conic = conic_bytes(n, N) if backend in _CONIC else 0.0
+    return arrays, work, conic
 
 
 def _overflow(a, batch: bool) -> FusionInputError:

@@ -2,6 +2,7 @@
 references: the numpy criteria of criteria.py (f, g, H from inverted informations),
 CVXPY/Clarabel, grids, and each other (the SQP on N = 2 against the 1-D method)."""
 
+import itertools
 import math
 
 import cvxpy as cp
@@ -337,3 +338,25 @@ def test_pair_ladder_log_det_of_a_product_equals_the_sum_of_logs_to_the_last_dig
             assert abs(got - want) <= 8 * n * np.finfo(float).eps * max(abs(want), 1.0)
     abc = np.stack([np.zeros(3), np.array([0.5, 0.0, 0.25]), np.ones(3)])
     assert closed_form._value(0.5, abc, False) == np.inf
+
+
+@pytest.mark.parametrize(("N", "n"), [(1, 1), (2, 4), (3, 2), (40, 3), (7, 12)])
+def test_work_buffers_have_their_shapes_and_share_no_memory(N, n):
+    """`work` carves buffers of one shape from one allocation: each has the shape its
+    kernels index it by (K = min(N, n^2 + 1) columns of the nearest-point problem), no two
+    overlap, Et's simplex column is 1 and the mask starts empty."""
+    m, K = n * n, min(N, n * n + 1)
+    want = {"At": (n, N * n), "Vt": (n, N * n), "R": (n, n), "Ri": (n, n), "P": (n, n),
+            "B": (n, n), "X": (n, n), "S": (n, n), "lam": (n,), "U": (n, n), "zeta": (m,),
+            "g": (N,), "Et": (N, m + 1), "x": (N,), "z": (N,), "mask": (N,), "r": (m + 1,),
+            "cols": (N,), "Elt": (K, m + 1), "Vlt": (K, m + 1), "Rls": (K, K),
+            "qe": (m + 1,), "w_try": (N,), "best_w": (N,), "rhs": (N * n,), "abc": (3, n)}
+    ws = work(N, n)
+    assert {name: a.shape for name, a in ws._asdict().items()} == want
+    for a in ws:
+        a[...] = 0  # every element is writable
+    for (i, a), (j, b) in itertools.combinations(enumerate(ws), 2):
+        assert not np.shares_memory(a, b), (ws._fields[i], ws._fields[j])
+    ws = work(N, n)
+    assert np.all(ws.Et[:, m] == 1.0) and not ws.mask.any()
+    assert all(a.flags.c_contiguous for a in ws)
