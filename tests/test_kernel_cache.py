@@ -285,3 +285,19 @@ def test_the_notice_reaches_stderr_of_a_program_that_configures_no_logging(tmp_p
     assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
     assert runs[0].stderr.strip() == linalg.COMPILE_NOTICE
     assert runs[1].stderr == ""
+
+
+@pytest.mark.slow
+def test_every_kernel_indexes_within_its_arrays(tmp_path):
+    """The default test suite passes with every kernel compiled under numba's bounds
+    checking (NUMBA_BOUNDSCHECK=1, into a cache of its own), which turns an index past an
+    array into an IndexError. numba does not check by default, so a kernel writing past a
+    buffer would corrupt memory silently, and since `factored.work` carves its buffers
+    from shared allocations, a neighbouring buffer of the same problem."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "NUMBA_BOUNDSCHECK": "1", "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
+                          "-m", "not slow", "-n", "2", "tests"],
+                         cwd=root, env=env, capture_output=True, text=True, timeout=1800)
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
+    assert " passed" in out.stdout.splitlines()[-1]
