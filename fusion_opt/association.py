@@ -280,6 +280,11 @@ def _tiny(d: np.ndarray, differences, s: float) -> None:
         d[tiny] = row_norms(differences(tiny)) / s
 
 
+def _pair_differences(p: np.ndarray, c: np.ndarray, rows, cols) -> np.ndarray:
+    """p[rows] - c[cols] (K, d): the differences of the pairs (rows[k], cols[k])."""
+    return p[rows] - c[cols]
+
+
 def _unit(threshold: float) -> float:
     """The power of two s in [threshold, 2 threshold), at most 2^1023 (2^1024 overflows:
     a threshold of 1e308 then grouped nothing), in which `_distance` measures."""
@@ -295,7 +300,7 @@ def _centroid_distance(p: np.ndarray, c: np.ndarray, threshold: float):
     if np.isfinite(ps).all() and np.isfinite(cs).all():
         with np.errstate(over="ignore"):
             d = cdist(ps, cs)
-        _tiny(d, lambda tiny: p[tiny.nonzero()[0]] - c[tiny.nonzero()[1]], s)
+        _tiny(d, lambda tiny: _pair_differences(p, c, *tiny.nonzero()), s)
         return d, d < threshold / s
     d, near = np.empty((len(p), len(c))), np.empty((len(p), len(c)), dtype=bool)
     for i in range(len(p)):  # a row at a time: the (m, K, d) differences at once made every
