@@ -30,7 +30,6 @@ the source tracks it came from.
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 
@@ -43,7 +42,7 @@ from .estimates import Estimates, track_ids
 from .limits import fits, limits
 from .linalg import jit, row_norms
 from .results import FusionInputError
-from .validation import finite_real, hashable, safe_repr
+from .validation import finite_real, hashable, is_integer, is_sequence, safe_repr
 
 __all__ = ["METHODS", "Group", "associate"]
 METHODS = ("nearest", "assignment")
@@ -146,12 +145,11 @@ def check_dims(dims, n: int | None = None) -> list[int] | None:
     """dims: None (all components) or distinct integer components, each in [0, n)."""
     if dims is None:
         return None
-    if isinstance(dims, str | bytes) or not hasattr(dims, "__iter__"):
+    if not is_sequence(dims):
         raise FusionInputError(f"dims must be a sequence of state components, got "
                                f"{safe_repr(dims)}")
     dims = list(dims)
-    if (not dims or any(isinstance(d, bool) or not isinstance(d, numbers.Integral) for d in dims)
-            or len(set(dims)) != len(dims)):
+    if not dims or not all(map(is_integer, dims)) or len(set(dims)) != len(dims):
         raise FusionInputError(f"dims must be distinct integer state components, got "
                                f"{safe_repr(dims)}")
     if any(d < 0 for d in dims):

@@ -17,14 +17,13 @@ exactly 1 (an inexact scale that rounds to 1 is the double below). Where the pro
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 
 from .limits import fits
 from .linalg import jit
 from .results import FusionInputError
-from .validation import check_detection, finite_array, real_array, safe_repr
+from .validation import check_detection, finite_array, is_integer, real_array, safe_repr
 
 _LOG2E = 1.0 / np.log(2.0)
 
@@ -237,7 +236,7 @@ def _inferred(*named) -> int:
 
 
 def _node_count(n_nodes) -> int:
-    if isinstance(n_nodes, bool) or not isinstance(n_nodes, numbers.Integral) or n_nodes < 1:
+    if not is_integer(n_nodes) or n_nodes < 1:
         raise FusionInputError(f"n_nodes must be an integer >= 1, got {safe_repr(n_nodes)}")
     if n_nodes > 10**7:
         raise FusionInputError(f"n_nodes = {safe_repr(n_nodes)} is more nodes than a fusion "

@@ -29,6 +29,7 @@ from .validation import (
     finite_array,
     finite_real,
     hashable,
+    is_integer,
     real_array,
     safe_repr,
     short_repr,
@@ -66,7 +67,7 @@ class Estimates:
     @classmethod
     def empty(cls, n: int, time: float | None = None, node: Hashable | None = None):
         """No estimate of an n-dimensional state (a step with nothing to report)."""
-        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        if not is_integer(n) or n < 1:
             raise FusionInputError(f"n must be an integer >= 1, got {safe_repr(n)}")
         fits(f"n = {safe_repr(n)}", estimates_bytes(1, n))  # an estimate of a later step
         return cls(np.zeros((0, n)), np.zeros((0, n, n)), None, time, node)

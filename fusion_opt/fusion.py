@@ -22,7 +22,7 @@ from .backends import newton
 from .core import Names
 from .factored import work
 from .results import FusionInputError, FusionResult
-from .validation import real_array, safe_repr
+from .validation import is_integer, real_array, safe_repr
 
 _PAIR = Names("m_a and m_b", "P_a and P_b", pair=True)
 
@@ -129,7 +129,7 @@ def warmup(n: int, N: int, criterion="trace", backend=None) -> float:
     disk) and, for "clarabel" and "scs", CVXPY's program for (n, N, criterion) is built.
     Returns the seconds it took."""
     for name, value in (("n", n), ("N", N)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        if not is_integer(value) or value < 1:
             raise FusionInputError(f"{name} must be an integer >= 1, got {safe_repr(value)}")
     core.check_memory(core.request("bci", criterion, backend, {}), n, N)  # before allocating
     t0 = time.perf_counter()

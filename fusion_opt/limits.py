@@ -25,11 +25,10 @@ array_memory: the estimated memory of the arrays a tracker (its particles and a 
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 from .results import FusionInputError
-from .validation import safe_repr, wide_float
+from .validation import is_real, safe_repr, wide_float
 
 _GIB = 2**30
 
@@ -47,8 +46,7 @@ class Limits:
             raise AttributeError(f"fusion_opt.limits has no limit {safe_repr(name)}; its limits "
                                  f"are {tuple(self.__dataclass_fields__)}")
         try:
-            ok = not isinstance(value, bool) and isinstance(value, numbers.Real) \
-                and float(value) > 0
+            ok = is_real(value) and float(value) > 0
         except OverflowError:  # an int past the float range (10**400)
             ok = False
         if not ok:

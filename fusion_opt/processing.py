@@ -39,7 +39,6 @@ tracks each fused track came from.
 
 from __future__ import annotations
 
-import numbers
 from collections import Counter, defaultdict
 from collections.abc import Hashable, Mapping
 from typing import NamedTuple
@@ -55,7 +54,7 @@ from .fusion import fuse
 from .limits import batch_bytes, limits
 from .linalg import row_norms
 from .results import FusionInputError, FusionSolverError, in_context
-from .validation import finite_real, hashable, safe_repr
+from .validation import finite_real, hashable, is_integer, is_sequence, safe_repr
 
 FUSE_METHODS = ("ci", "bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei")
 PAIRWISE = ("ci", "ici", "ei")
@@ -226,7 +225,7 @@ class ProcessingNode:
         return "ProcessingNode" if self.name is None else f"ProcessingNode {safe_repr(self.name)}"
 
     def _check_sources(self, sources) -> tuple:
-        if isinstance(sources, str | bytes | Mapping) or not hasattr(sources, "__iter__"):
+        if not is_sequence(sources):
             raise self._err(f"sources must be a sequence of source names, got {safe_repr(sources)}")
         sources = tuple(sources)
         if not sources:
@@ -306,14 +305,13 @@ class ProcessingNode:
         return p, value
 
     def _check_min_sources(self, min_sources) -> int:
-        if (isinstance(min_sources, bool) or not isinstance(min_sources, numbers.Integral)
-                or not 1 <= min_sources <= len(self.sources)):
+        if not is_integer(min_sources) or not 1 <= min_sources <= len(self.sources):
             raise self._err(f"min_sources must be an integer in [1, {len(self.sources)}] "
                             f"(the number of sources), got {safe_repr(min_sources)}")
         return int(min_sources)
 
     def _check_memory(self, memory) -> int:
-        if isinstance(memory, bool) or not isinstance(memory, numbers.Integral) or memory < 1:
+        if not is_integer(memory) or memory < 1:
             raise self._err(f"memory must be an integer >= 1 (steps), got {safe_repr(memory)}")
         return int(memory)
 

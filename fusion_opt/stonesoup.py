@@ -32,7 +32,6 @@ does not.
 from __future__ import annotations
 
 import itertools
-import numbers
 from collections.abc import Hashable, Iterable, Mapping
 from datetime import datetime, timedelta
 from functools import lru_cache
@@ -52,7 +51,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 from . import BACKENDS, FusionInputError, FusionResult, fuse
 from .estimates import Estimates
-from .validation import hashable, real_array, safe_repr, short_repr
+from .validation import hashable, is_integer, is_real, real_array, safe_repr, short_repr
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
            "to_datetime", "to_estimates", "to_seconds", "to_states", "to_tracks"]
@@ -86,8 +85,8 @@ def to_datetime(seconds: float | None, epoch: datetime = EPOCH) -> datetime | No
     """The datetime `seconds` after `epoch` (Estimates.time to a Stone Soup timestamp)."""
     if seconds is None:
         return None
-    if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) \
-            or (isinstance(seconds, float | np.floating) and not np.isfinite(seconds)):
+    if not is_real(seconds) or isinstance(seconds, float | np.floating) \
+            and not np.isfinite(seconds):
         raise FusionInputError(f"seconds must be a finite real number or None, got "
                                f"{safe_repr(seconds)}")
     _check_epoch(epoch)
@@ -132,7 +131,7 @@ class TrackIds:
 
     def track_id(self, int_id: int) -> Hashable:
         """The Stone Soup id bound to integer `int_id` (str(int_id), bound now, if new)."""
-        if isinstance(int_id, bool) or not isinstance(int_id, numbers.Integral):
+        if not is_integer(int_id):
             raise FusionInputError(f"int_id must be an integer, got {safe_repr(int_id)}")
         int_id = int(int_id)
         if not -_INT64_MAX - 1 <= int_id <= _INT64_MAX:  # fuzz I9: refused later, unnamed
@@ -384,7 +383,7 @@ class StoneSoupTracker:
         if not (hasattr(tracker, "update_tracker") or isinstance(tracker, Iterable)):
             raise FusionInputError(f"tracker must be a Stone Soup Tracker or an iterable of "
                                    f"(time, tracks), got {type(tracker).__name__}")
-        if isinstance(ndim, bool) or not isinstance(ndim, numbers.Integral) or ndim < 1:
+        if not is_integer(ndim) or ndim < 1:
             raise FusionInputError(f"ndim must be an integer >= 1, got {safe_repr(ndim)}")
         _check_epoch(epoch)
         if node is not None and not hashable(node):

@@ -28,11 +28,34 @@ def _where(index: tuple[int, ...], item: str = "node", labels=None) -> str:
     return f"problem {index[:-1] if len(index) > 2 else index[0]}, {item} {index[-1]}"
 
 
+def is_real(x) -> bool:
+    """Whether x is a real number as a scalar option takes one: a numbers.Real (a Python or
+    numpy int or float, a Fraction, ...) but not a bool, nor a np.timedelta64, which numpy
+    registers as an integer: a duration read as a count (np.timedelta64(5) as 5 particles),
+    and one with a unit made float() and int() raise TypeError in place of the refusal
+    (fuzz U3)."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool | np.timedelta64)
+
+
+def is_integer(x) -> bool:
+    """Whether x is an integer as a count or an index takes one: a numbers.Integral but not
+    a bool or a np.timedelta64 (`is_real`)."""
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool | np.timedelta64)
+
+
+def is_sequence(x) -> bool:
+    """Whether x can be a sequence of items (names, components, ids, targets): iterable, and
+    not a string, bytes, a mapping (whose keys would be the items) or a 0-d array, which
+    has __iter__ but raises TypeError when iterated (fuzz U5, U6)."""
+    return hasattr(x, "__iter__") and not isinstance(x, str | bytes | Mapping) \
+        and not (isinstance(x, np.ndarray) and x.ndim == 0)
+
+
 def finite_real(x) -> float | None:
-    """x as a float when it is a real number (not a bool) whose float is finite, else None:
+    """x as a float when it is a real number (`is_real`) whose float is finite, else None:
     a numpy scalar, a Fraction or a Python int of any size is a real number, and one whose
     float overflows (10**400) is refused, not crashed on."""
-    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+    if not is_real(x):
         return None
     try:
         f = float(x)
@@ -104,7 +127,7 @@ def real_array(x, name: str) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise FusionInputError(f"{name} must be an array of real numbers ({exc})") from None
     if a.dtype.kind == "O" and a.size and all(
-            isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in a.flat):
+            is_real(v) for v in a.flat):
         return _reals(a, name)  # Fraction, int beyond int64: numbers numpy keeps as objects
     if a.dtype.kind == "O" and a.size == 0:  # an empty object array (a table's empty
         return a.astype(float)  # column) holds no wrong value (fuzz L3)

@@ -344,3 +344,14 @@ def test_distances_whose_squares_underflow_still_order_the_joins(method, scale):
         groups = fo.associate({"a": at(a), "b": at(b)}, 1.0, method)
         assert sorted(g.pairs for g in groups) == sorted([(("a", near), ("b", 0)),
                                                           (("a", 1 - near),)])
+
+
+@pytest.mark.parametrize("dims", [np.array(0), np.array([0, 1])[0], np.ma.masked_array(1)])
+def test_dims_of_a_0d_array_or_a_scalar_are_refused_by_name(dims):
+    """Fuzz U6: a 0-d array has __iter__ but raises TypeError when iterated; dims=[0] is the
+    way to give one component."""
+    report = {"a": fo.Estimates([[0.0, 0.0]], [np.eye(2)])}
+    with pytest.raises(fo.FusionInputError, match="dims must be a sequence of state components"):
+        fo.associate(report, 1.0, dims=dims)
+    with pytest.raises(fo.FusionInputError, match="dims must be a sequence of state components"):
+        fo.ProcessingNode(["a"], method="bci", threshold=1.0, dims=dims)

@@ -5,6 +5,8 @@ import pytest
 from conftest import random_instance
 
 import fusion_opt as fo
+from trackers import metrics, models, resampling
+from trackers.rbpf import RBPF
 
 rng = np.random.default_rng(0)
 MEANS, COVS = random_instance(rng, 3, 4)
@@ -140,3 +142,35 @@ def test_real_numbers_that_numpy_keeps_as_objects_are_read_as_floats():
     assert fo.optimality_gap(COVS, [Fraction(1, 4)] * 4) == fo.optimality_gap(COVS, [0.25] * 4)
     with pytest.raises(fo.FusionInputError, match="got objects"):
         fo.mbci(MEANS, COVS, [Fraction(9, 10), "x", 0.7, 0.6], 0.5)
+
+
+_TD, _TD_UNIT = np.timedelta64(5), np.timedelta64(2, "s")
+
+
+@pytest.mark.parametrize("name, call", [
+    ("n", lambda v: fo.warmup(v, 2)),
+    ("n_nodes", lambda v: fo.detection_scales(0.5, 0.5, n_nodes=v)),
+    ("min_sources", lambda v: fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0,
+                                                min_sources=v)),
+    ("memory", lambda v: fo.ProcessingNode(["a", "b"], method="bci", threshold=1.0, memory=v)),
+    ("dims", lambda v: fo.associate({"a": fo.Estimates([[0.0, 0.0]], [np.eye(2)])}, 1.0,
+                                    dims=[v])),
+    ("n", lambda v: fo.Estimates.empty(v)),
+    ("n_particles", lambda v: _rbpf(n_particles=v)),
+    ("clutter_density", lambda v: _rbpf(clutter_density=v)),
+    ("dt", lambda v: models.turn_model(0.0, 0.05, 0.01, v)),
+    ("c", lambda v: metrics.ospa([[0.0, 0.0]], [[1.0, 0.0]], c=v, p=2)),
+    ("threshold", lambda v: resampling.end_of_step(np.zeros(3), v, np.random.default_rng(0))),
+])
+@pytest.mark.parametrize("value", [_TD, _TD_UNIT], ids=["no unit", "seconds"])
+def test_a_timedelta64_is_no_number(name, call, value):
+    """Fuzz U3: numpy registers np.timedelta64 as an integer, so the scalar checks took
+    np.timedelta64(5) as 5 (particles, nodes, ...) and one with a unit raised TypeError in
+    float() or int(). Both are refused by name (`validation.is_real`, `is_integer`)."""
+    with pytest.raises(fo.FusionInputError, match=name):
+        call(value)
+
+
+def _rbpf(**kwargs):
+    return RBPF(models.turn_model(0.0, 0.05, 0.01, 0.1), np.zeros(4), np.eye(4),
+                rng=np.random.default_rng(0), **kwargs)

@@ -8,7 +8,6 @@ silently converted (a complex value is never truncated to its real part).
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 
 import numpy as np
@@ -41,10 +40,8 @@ def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.nd
 def real(name: str, value) -> float:
     """A real scalar (int, float or a 0-d real array), refusing None, strings, booleans and
     complex numbers; NaN and inf pass here (the callers say which range is allowed)."""
-    if isinstance(value, bool | np.bool_) or not (
-        isinstance(value, numbers.Real)
-        or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")
-    ):
+    if not (_fo.is_real(value)
+            or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")):
         raise FusionInputError(f"{name} must be a real number, got {_fo.safe_repr(value)}")
     return _fo.wide_float(value)  # an int past float64 (2**2000): +-inf, refused by range
 
@@ -91,7 +88,7 @@ def probability(name: str, value) -> float:
 
 
 def positive_int(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+    if not _fo.is_integer(value) or value < 1:
         raise FusionInputError(f"{name} must be an integer >= 1, got {_fo.safe_repr(value)}")
     return int(value)
 

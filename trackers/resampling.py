@@ -11,13 +11,12 @@ resample when ESS < threshold (then the log-weights restart at -log N).
 
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import numpy as np
 
 from fusion_opt import FusionInputError
-from fusion_opt.validation import real_array, safe_repr
+from fusion_opt.validation import is_real, real_array, safe_repr
 from trackers import _checks
 
 
@@ -97,8 +96,7 @@ class StepEnd(NamedTuple):
 def end_of_step(logw: np.ndarray, threshold: float, rng: np.random.Generator) -> StepEnd:
     """Normalise log-weights (N,), compute the ESS and resample systematically if
     ESS < threshold (an absolute particle count). Draws from ``rng`` only when resampling."""
-    if isinstance(threshold, bool) or not isinstance(threshold, numbers.Real) \
-            or not threshold >= 0.0:  # also NaN
+    if not is_real(threshold) or not threshold >= 0.0:  # also NaN
         raise FusionInputError(f"threshold must be a particle count >= 0, got "
                                f"{safe_repr(threshold)}")
     logw = normalize_log_weights(logw)
