@@ -163,3 +163,38 @@ def test_a_long_step_without_dynamics_gives_the_closed_form_noise(dt):
     A, Q = models.discretize(F, L, Qc, dt)
     np.testing.assert_allclose(Q, L @ Qc @ L.T * dt, rtol=1e-7)
     assert np.linalg.eigvalsh(Q).min() >= -1e-12 * np.abs(Q).max()
+
+
+@pytest.mark.parametrize("a", [1e12, 1e15, 1e17, 1.8e18])
+def test_a_turn_whose_doublings_lose_the_rotation_is_refused(a):
+    """Fuzz U8: over dt = 0.1 these turn rates need 38 to 62 doublings, each doubling the
+    rounding of the rotation: its singular values were 1.0000129 (1e12), 1.54 (1e17) and
+    1.8e-5 (1.8e18) where a rotation's are 1. Refused now: log det A drifts from
+    tr(F) dt = 0, which it equals exactly."""
+    with pytest.raises(FusionInputError, match=r"dt = 0.1 is too long a step for this F: .* "
+                                               r"has log det .* where tr\(F\) dt = 0 "):
+        models.turn_model(a, 0.05, 0.01, 0.1)
+
+
+@pytest.mark.parametrize("a, dt", [(1e5, 0.1), (1e8, 0.1), (0.0, 1e9), (0.75, 1e6)])
+def test_long_turns_that_keep_their_rotation_are_accepted(a, dt):
+    """The check of U8 refuses no model whose doublings keep it: the velocity block is a
+    rotation to 1e-8 (against cos and sin of a dt) and the constant-velocity model over 1e9 s
+    is exact, as its doublings are."""
+    A = models.turn_model(a, 0.05, 0.01, dt).A
+    c, s = np.cos(a * dt), np.sin(a * dt)
+    np.testing.assert_allclose(A[2:, 2:], [[c, s], [-s, c]], atol=1e-8)  # vx' = a vy
+    np.testing.assert_allclose(np.linalg.svd(A[2:, 2:], compute_uv=False), 1.0, atol=1e-8)
+    if a == 0.0:
+        np.testing.assert_array_equal(A, [[1, 0, dt, 0], [0, 1, 0, dt], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+
+def test_the_doubling_check_passes_models_whose_determinant_it_cannot_resolve():
+    """U8's check compares log det A with tr(F) dt only where the LU resolves it: not for a
+    stiff model whose A underflows, nor a hyperbolic one of condition 1e26 (against cosh and
+    sinh)."""
+    A = models.discretize(np.diag([-800.0, 200.0]), np.eye(2), np.eye(2), 1.0)[0]
+    assert A[0, 0] == 0.0 and A[1, 1] == pytest.approx(np.exp(200.0), rel=1e-12)
+    A = models.discretize(np.array([[0.0, 1.0], [1.0, 0.0]]), np.eye(2), np.eye(2), 30.0)[0]
+    np.testing.assert_allclose(A, [[np.cosh(30), np.sinh(30)], [np.sinh(30), np.cosh(30)]],
+                               rtol=1e-12)

@@ -2,6 +2,7 @@
 the crossing targets of the network example."""
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -283,7 +284,9 @@ def test_integers_past_int64_and_steps_past_float64_are_handled_by_name():
     # fuzz O6: numpy integers too (np.int32 dt x n_steps wrapped to -960 and passed);
     # O3: an int of 5,001 digits is named by its size (its repr raised ValueError)
     assert type(scenarios.Table2Config(meas_sd=np.int64(2**32)).meas_sd) is float
-    with pytest.raises(FusionInputError, match="the target reaches 2.06e[+]12 m"):
+    # held as 2.1e9 s, not wrapped: its turns of 1.6e9 rad are refused (fuzz U8)
+    with pytest.raises(FusionInputError, match="turn rate 0 = 0.7479.*dt = 2.14748e[+]09 is too "
+                                               "long a step"):
         Table1Config(dt=np.int32(2**31 - 1))
     with pytest.raises(FusionInputError, match="dt = an integer of about 5001 digits is beyond"):
         Table1Config(dt=10**5000)
@@ -303,3 +306,34 @@ def test_integers_past_int64_and_steps_past_float64_are_handled_by_name():
         # a target born at 0 lives through the run; one born at t > 0 is far past it
         np.testing.assert_array_equal(data.alive.all(axis=1), np.asarray(born) == 0)
         np.testing.assert_array_equal(data.alive.any(axis=1), np.asarray(born) == 0)
+
+
+def test_float_fields_given_as_other_real_numbers_hold_their_nearest_float():
+    """Fuzz U4: a Fraction passed the field checks and reached np.sqrt and np.cos as an
+    object (TypeError); a float16 dt overflowed in float16 inside the reach check. Every
+    real number in a float field is held as the nearest float64; a long double beyond
+    float64's range, or nonzero below it, is refused by name."""
+    from fractions import Fraction
+
+    assert Table1Config(r=Fraction(1, 2)).r == 0.5
+    cfg = scenarios.CrossingConfig(heading_offset=Fraction(1, 3))
+    assert type(cfg.heading_offset) is float and cfg.heading_offset == 1 / 3
+    assert np.isfinite(cfg.targets()[0]).all()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cfg = Table1Config(dt=np.float16(0.025), r=np.float32(0.5))
+    assert (cfg.dt, cfg.r) == (float(np.float16(0.025)), 0.5)
+    assert type(cfg.dt) is float and type(cfg.r) is float
+    for huge in (np.longdouble("1e400"), np.longdouble("1e-400")):
+        if np.finfo(np.longdouble).max <= np.finfo(np.float64).max:
+            continue  # long double is float64 here: nothing beyond its range to give
+        with pytest.raises(FusionInputError, match="q = .* is beyond float64's range"):
+            Table1Config(q=huge)
+
+
+@pytest.mark.parametrize("targets", [np.array(0.5), np.ma.masked_array(1.0),
+                                     np.array(None, dtype=object)])
+def test_a_0d_array_of_targets_is_refused_by_name(targets):
+    """Fuzz U5: a 0-d array has __iter__ but raises TypeError when iterated."""
+    with pytest.raises(FusionInputError, match="targets must be a sequence of TargetSpec"):
+        scenarios.Table2Config(targets=targets)

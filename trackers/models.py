@@ -28,6 +28,8 @@ from scipy.linalg import expm
 from fusion_opt import FusionInputError
 from trackers import _checks
 
+_EPS = np.finfo(np.float64).eps
+_DOUBLING_RTOL = 1e-8  # `_check_doublings`: half of float64's digits
 _MAX_HALVINGS = 64  # |F|_1 dt up to 2^63: each doubling of `discretize` adds rounding
 
 #: Indices of the position components in the state [x, y, vx, vy].
@@ -62,6 +64,54 @@ def _halvings(norm1: float, dt: float) -> int:
     return 0 if x <= 0.0 else int(np.ceil(x)) if x <= _MAX_HALVINGS else _MAX_HALVINGS + 1
 
 
+def _doubled(F, LQL, dt: float, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """(A, Q) of `discretize` over dt from Van Loan's exponential over h = dt / 2^s, doubled
+    s times; inf or NaN where they overflow."""
+    n = F.shape[0]
+    h = dt / 2.0**s
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -F
+    M[:n, n:] = LQL
+    M[n:, n:] = F.T
+    # The noise block enters the exponential's upper right block linearly: where it is
+    # large over the step (F = 0, |L Qc L^T| dt = 1e24: scipy's expm of that nilpotent
+    # matrix gave a Q off by 100% and indefinite, fuzz O8), it is taken 2^-e times and the
+    # block multiplied back by 2^e, exactly; the usual models (the block below 1) as before.
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = max(0, math.frexp(float(np.abs(M[:n, n:]).sum(axis=0).max()) * h)[1])
+        M[:n, n:] = np.ldexp(M[:n, n:], -e)
+        G = expm(M * h)
+        A = G[n:, n:].T
+        Q = np.ldexp(A @ G[:n, n:], e)
+        for _ in range(s):
+            Q = Q + A @ Q @ A.T
+            A = A @ A
+    return A, Q
+
+
+def _check_doublings(F, A, s: int, dt: float) -> None:
+    """Refuses A = expm(F dt) (n, n) made by s doublings (`_doubled`) whose log |det A|
+    differs from tr(F) dt, which it equals exactly, by more than _DOUBLING_RTOL beyond what
+    the LU of A can resolve (n eps cond(A); nothing where cond(A) is past 1 / eps: a stiff
+    stable model's A underflows, and its doublings shrink their rounding anyway). Each doubling
+    doubles the drift of a rotation's size: a turn rate of 1e17 rad/s over dt = 0.1 (55
+    doublings) made a "rotation" that grew velocities by 54 % a step, 1.8e18 one that
+    shrank them to 1.8e-5 (fuzz U8)."""
+    n = A.shape[0]
+    sign, logdet = np.linalg.slogdet(A)
+    volume = float(np.trace(F)) * dt
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        resolved = n * _EPS * np.linalg.cond(A) + _EPS * abs(volume)
+    if not resolved < 1.0:  # cond(A) past 1 / eps (or inf): the LU cannot tell
+        return
+    drift = abs(logdet - volume) if sign > 0 else np.inf
+    if drift > _DOUBLING_RTOL + resolved:
+        raise FusionInputError(
+            f"dt = {dt:g} is too long a step for this F: expm(F dt), made from 2^{s} steps "
+            f"of dt / 2^{s}, has log det {logdet:.6g} where tr(F) dt = {volume:.6g} (its "
+            f"rounding grew past {_DOUBLING_RTOL:g}); give a shorter step")
+
+
 def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretisation of dx = F x dt + L dw, E[dw dw^T] = Qc dt, over a step dt.
 
@@ -90,27 +140,12 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
         product = f"{norm1 * dt:.3g}" if norm1 * dt < np.inf else f"{norm1:.3g} x {dt:.3g}"
         raise FusionInputError(f"dt = {dt:g} is too long a step for this F: |F|_1 dt = "
                                f"{product} (at most 2^{_MAX_HALVINGS - 1})")
-    h = dt / 2.0**s
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n] = -F
-    M[:n, n:] = L @ Qc @ L.T
-    M[n:, n:] = F.T
-    # The noise block enters the exponential's upper right block linearly: where it is
-    # large over the step (F = 0, |L Qc L^T| dt = 1e24: scipy's expm of that nilpotent
-    # matrix gave a Q off by 100% and indefinite, fuzz O8), it is taken 2^-e times and the
-    # block multiplied back by 2^e, exactly; the usual models (the block below 1) as before.
-    with np.errstate(over="ignore", invalid="ignore"):
-        e = max(0, math.frexp(float(np.abs(M[:n, n:]).sum(axis=0).max()) * h)[1])
-        M[:n, n:] = np.ldexp(M[:n, n:], -e)
-        G = expm(M * h)
-        A = G[n:, n:].T
-        Q = np.ldexp(A @ G[:n, n:], e)
-        for _ in range(s):
-            Q = Q + A @ Q @ A.T
-            A = A @ A
+    A, Q = _doubled(F, L @ Qc @ L.T, dt, s)
     if not (np.isfinite(A).all() and np.isfinite(Q).all()):
         raise FusionInputError(f"dt = {dt:g} is too long a step for this F and Qc: its "
                                "transition or process noise overflows float64")
+    if s:
+        _check_doublings(F, A, s, dt)
     # Q is symmetric in exact arithmetic; remove the rounding asymmetry so Cholesky works.
     return A, 0.5 * (Q + Q.T)
 

@@ -17,7 +17,6 @@ Measurements carry their step, time and true origin: the target's id (0, 1, ...)
 from __future__ import annotations
 
 import dataclasses
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -25,7 +24,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt.prepare import MAX_CONDITION
-from fusion_opt.validation import safe_repr, short_repr, wide_float
+from fusion_opt.validation import is_real, is_sequence, safe_repr, wide_float
 from trackers import _checks
 from trackers.models import LinearGaussian, discretize, turn_F, turn_L, turn_model
 
@@ -133,18 +132,22 @@ def _check_rates(name: str, rates, q: float, dt: float, noise_sd: float = 0.0) -
 
 
 def _float_fields(cfg) -> None:
-    """Each field whose default is a float, given as a Python int, held as that float (a
-    TOML integer of 2^70 reached numpy as an object and raised TypeError: fuzz N7); one
-    past float64's range refused by name."""
+    """Each field whose default is a float, given as another real number (`is_real`: a
+    Python or numpy int, a Fraction, a float16 or float32, a long double), held as the
+    nearest float64: a TOML integer of 2^70 reached numpy as an object and raised
+    TypeError (fuzz N7), numpy's ints wrap (O6), a Fraction reached np.sqrt and a float16
+    overflowed inside a check (U4). One that float64 does not hold (past its range, or
+    nonzero below its smallest number) is refused by name."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
-        if isinstance(f.default, float) and isinstance(value, numbers.Integral) and \
-                not isinstance(value, bool | np.bool_):  # numpy's too (they wrap: fuzz O6)
-            try:
-                object.__setattr__(cfg, f.name, float(value))
-            except OverflowError:
-                raise FusionInputError(f"{f.name} = {short_repr(value)} is beyond float64's "
-                                       "range") from None
+        if isinstance(f.default, float) and is_real(value) and type(value) is not float:
+            x = wide_float(value)
+            lost = np.isinf(x) and not (isinstance(value, np.floating) and np.isinf(value)) \
+                or x == 0.0 and value != 0
+            if lost:
+                raise FusionInputError(f"{f.name} = {safe_repr(value)} is beyond float64's "
+                                       "range")
+            object.__setattr__(cfg, f.name, x)
 
 
 def _check_shared(cfg) -> None:
@@ -414,8 +417,7 @@ class Table2Config:
         _check_shared(self)
         _checks.positive("meas_sd", self.meas_sd)
         # a study's TOML gives targets as tables (dicts) or arrays; store TargetSpecs
-        if isinstance(self.targets, str | bytes | Mapping) or not hasattr(self.targets,
-                                                                          "__iter__"):
+        if not is_sequence(self.targets):
             raise FusionInputError(f"targets must be a sequence of TargetSpec, got "
                                    f"{type(self.targets).__name__}")
         targets = tuple(_target_spec(i, tg) for i, tg in enumerate(self.targets))
