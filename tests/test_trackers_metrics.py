@@ -328,3 +328,25 @@ def test_ospa_and_gospa_with_a_cutoff_far_above_the_distances(c, p):
                 for perm in itertools.permutations(range(5), 4))
     assert metrics.gospa(X, Y5, c, p) == pytest.approx(
         (best5 + c ** p / 2) ** (1 / p) if c < 1e100 else c * 0.5 ** (1 / p), rel=1e-12)
+
+
+def test_rmse_of_errors_near_the_top_of_float64_is_exact_or_refused():
+    """Fuzz U1: errors of 1e308 made rmse NaN (their scale 2^1024 was inf). A single error
+    of 1e308 has RMSE 1e308 exactly; errors of 1e308 in four components, an RMSE of 2e308,
+    are refused as an overflow, by name."""
+    assert metrics.rmse([[1e308]], [[0.0]]) == 1e308
+    assert metrics.rmse([[-1e308], [1e308]], [[0.0], [0.0]]) == 1e308
+    assert metrics.rmse([[2.0**1023, 0.0]], [[0.0, 0.0]]) == 2.0**1023
+    with pytest.raises(FusionInputError, match="the RMSE overflows float64"):
+        metrics.rmse(np.full((3, 4), 1e308), np.ones((3, 4)))
+
+
+@pytest.mark.parametrize("level", [0.95, 1 - 1e-12, 1 - 1e-16, np.nextafter(1.0, 0.0)])
+def test_nees_bounds_of_two_dimensions_are_the_closed_form_up_to_a_level_below_one(level):
+    """Fuzz U2: at a level within 1e-16 of 1 the upper bound was inf (1 - a rounded to 1 in
+    chi2.ppf). chi2(2) is exponential: its quantiles are -2 log(1 - p), so the two-sided
+    interval at level L is (-2 log(1 - a), -2 log(a)), a = (1 - L) / 2."""
+    lo, hi = metrics.nees_bounds(2, level)
+    a = (1.0 - level) / 2.0
+    assert hi == pytest.approx(-2.0 * math.log(a), rel=1e-13)
+    assert lo == pytest.approx(-2.0 * math.log1p(-a), rel=1e-13)

@@ -36,7 +36,7 @@ from scipy.stats import chi2
 
 from fusion_opt import FusionInputError
 from fusion_opt.linalg import row_norms
-from fusion_opt.validation import cholesky_ok, safe_repr, symmetrised
+from fusion_opt.validation import cholesky_ok, is_sequence, safe_repr, symmetrised
 from trackers import _checks
 
 
@@ -89,14 +89,19 @@ def mse(estimates, truth, components=None) -> float:
 
 def rmse(estimates, truth, components=None) -> float:
     """sqrt(mse): root mean (over time) squared error norm, computed on errors scaled by
-    their largest (exactly, by a power of two) when their squares would leave float64."""
+    their largest (exactly, by a power of two) when their squares would leave float64;
+    refused if the RMSE itself overflows (errors near 1e308 in several components)."""
     e = _errors(estimates, truth, components)
     top = np.abs(e).max()
     if 1e-150 < top < 1e150 or top == 0.0:
         return float(np.sqrt(np.mean(np.sum(e * e, axis=-1))))
-    scale = 2.0 ** np.frexp(top)[1]
-    e = e / scale
-    return float(np.sqrt(np.mean(np.sum(e * e, axis=-1))) * scale)
+    shift = int(np.frexp(top)[1])  # 2^shift itself is inf at top >= 2^1023 (fuzz U1)
+    e = np.ldexp(e, -shift)
+    with np.errstate(over="ignore"):
+        value = float(np.ldexp(np.sqrt(np.mean(np.sum(e * e, axis=-1))), shift))
+    if not np.isfinite(value):
+        raise FusionInputError(f"the RMSE overflows float64 (errors up to {top:.3g})")
+    return value
 
 
 def _cov_block(covs, components):
@@ -184,9 +189,8 @@ def anees_bounds(dim: int, count: int, level: float = 0.95) -> tuple[float, floa
     if count * dim >= 10**300:
         raise FusionInputError("count x dim must be below 1e300")
     df = float(count * dim)  # a Python int above 2^63 would reach scipy as an object
-    a = (1.0 - level) / 2.0
-    lo, hi = chi2.ppf([a, 1.0 - a], df) / count
-    return float(lo), float(hi)
+    a = (1.0 - level) / 2.0  # the upper tail by isf: 1 - a rounds to 1 below a = 2^-54,
+    return float(chi2.ppf(a, df) / count), float(chi2.isf(a, df) / count)  # ppf's inf (fuzz U2)
 
 
 def nees_bounds(dim: int, level: float = 0.95) -> tuple[float, float]:
@@ -373,7 +377,7 @@ def id_switches(ids) -> np.ndarray:
     matched track ids, ids[j] the ids matched to target j in step order (steps where it
     is unmatched left out, so a track that drops out and returns with its id does not
     switch)."""
-    if isinstance(ids, str | bytes) or not hasattr(ids, "__iter__"):
+    if not is_sequence(ids):
         raise FusionInputError(f"ids must be a sequence of id sequences, one per target, got "
                                f"{type(ids).__name__}")
     seqs = [_id_sequence(f"ids[{j}]", s) for j, s in enumerate(ids)]
