@@ -126,10 +126,12 @@ class Store:
     # -- opening -------------------------------------------------------------------------
 
     def _guard(self, fn, *args):
-        """fn(*args), with every SQLite error turned into one line naming the file."""
+        """fn(*args), with every SQLite error turned into one line naming the file; also
+        the UnicodeDecodeError of Python's sqlite3 when a damaged byte lies in the schema's
+        own SQL text, which it decodes on the first statement (fuzz U7)."""
         try:
             return fn(*args)
-        except sqlite3.DatabaseError as exc:
+        except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
             raise StoreError(f"{self.path} is not a usable study store (SQLite: {exc}); move "
                              "it away or choose another --out") from None
 

@@ -316,3 +316,15 @@ def test_an_out_that_cannot_be_a_folder_is_refused_by_name(tmp_path, capsys, mak
                                                                   "--quiet"]):
         assert main([*command, "--out", str(out)]) != 0
         assert said in capsys.readouterr().err
+
+
+def test_a_damaged_byte_in_the_schema_text_is_refused_in_one_line(tmp_path, capsys):
+    """Fuzz U7: a byte of the stored CREATE TABLE text set to 0xFF made Python's sqlite3
+    raise UnicodeDecodeError on the first statement, a traceback from `report` and `run`."""
+    path = _filled(tmp_path)
+    data = bytearray(path.read_bytes())
+    data[data.index(b"CREATE TABLE meta") + 7] = 0xFF
+    path.write_bytes(bytes(data))
+    _refused(path, "is not a usable study store .*codec can't decode")
+    with pytest.raises(StoreError, match="is not a usable study store"):
+        Store(path, CONFIG)
