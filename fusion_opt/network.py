@@ -104,6 +104,10 @@ class Network:
         except (FusionInputError, FusionSolverError) as exc:
             said = f" (nodes {safe_repr(stepped)} had stepped)" if stepped else ""
             raise in_context(exc, "", said) from exc
+        except Exception as exc:
+            if stepped:
+                exc.add_note(f"nodes {safe_repr(stepped)} of the Network had stepped")
+            raise
         return out
 
     def _check_lost(self, lost, scans) -> frozenset:
@@ -156,10 +160,17 @@ def _sequence(value, name: str) -> list:
 
 
 def _tracker_step(name, tracker, scan) -> Estimates:
+    """tracker.step(scan), checked; an error of the library's is raised again naming the
+    tracker as the network knows it, any other (the user's tracker's own) as it is, with
+    a note naming it (fuzz U10: a ZeroDivisionError came through with no word of which
+    tracker raised it)."""
     try:
         estimates = tracker.step(scan)
-    except (FusionInputError, FusionSolverError) as exc:  # name the tracker as the
-        raise in_context(exc, f"tracker {safe_repr(name)}: ") from exc  # network knows it
+    except (FusionInputError, FusionSolverError) as exc:
+        raise in_context(exc, f"tracker {safe_repr(name)}: ") from exc
+    except Exception as exc:
+        exc.add_note(f"raised by the step of tracker {safe_repr(name)} of a fusion_opt Network")
+        raise
     if not isinstance(estimates, Estimates):
         raise FusionInputError(f"tracker {safe_repr(name)} returned {type(estimates).__name__} "
                                f"from step, not an Estimates")
@@ -171,6 +182,9 @@ def _check_trackers(trackers) -> dict:
         raise FusionInputError(f"trackers must be a mapping name -> tracker, got "
                                f"{type(trackers).__name__}")
     for name, tracker in trackers.items():
+        if isinstance(tracker, type):  # its step would want the instance as its scan
+            raise FusionInputError(f"tracker {safe_repr(name)} is the class "
+                                   f"{tracker.__name__}, not a tracker: give an instance")
         if not callable(getattr(tracker, "step", None)):
             raise FusionInputError(f"tracker {safe_repr(name)} has no step(scan) method")
     _refuse_shared(trackers, "tracker")

@@ -347,3 +347,27 @@ def test_a_failed_step_names_the_lost_trackers_that_stepped():
     e = fo.Estimates(np.zeros((1, 2)), np.eye(2)[None])
     with pytest.raises(fo.FusionInputError, match=r"\(nodes \['a', 'b'\] had stepped\)$"):
         net.step({"a": e, "b": e}, lost=["a"])
+
+
+def test_a_trackers_own_error_keeps_its_type_and_says_where_it_came_from():
+    """Fuzz U10: a user tracker's own exception came through the network with no word of
+    which tracker raised it or which nodes had stepped; it keeps its type (the network
+    does not know what it means) and gains notes saying both. A class given as a tracker
+    is refused at construction: its step would take the scan as its instance."""
+    class Broken:
+        def step(self, scan):
+            raise ZeroDivisionError("the user's own bug")
+
+    from trackers import kalman, models
+    eye = np.eye(2)
+    kf = kalman.KalmanFilter(models.LinearGaussian(eye, eye, eye, eye), np.zeros(2), eye)
+    net = fo.Network({"a": kf, "b": Broken()},
+                     {"f": fo.ProcessingNode(["a", "b"], threshold=10.0, method="bci")})
+    with pytest.raises(ZeroDivisionError, match="the user's own bug") as info:
+        net.step({"a": [[0.0, 0.0]], "b": []})
+    assert info.value.__notes__ == [
+        "raised by the step of tracker 'b' of a fusion_opt Network",
+        "nodes ['a'] of the Network had stepped"]
+    with pytest.raises(fo.FusionInputError, match="tracker 'b' is the class Broken, not a "
+                                                  "tracker: give an instance"):
+        fo.Network({"b": Broken}, {})

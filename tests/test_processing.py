@@ -366,6 +366,8 @@ GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
     (["a", "b"], dict(min_sources=3), r"min_sources must be an integer in \[1, 2\]"),
     (["a", "b"], dict(min_sources=1.0), "min_sources"),
     (["a", "b"], dict(name=["x"]), "name"),
+    ({"a", "b"}, {}, "sources must be a sequence .*a set has no order"),  # fuzz U11
+    (frozenset("ab"), {}, "a set has no order"),
 ])
 def test_bad_construction_is_named(sources, kwargs, match):
     with pytest.raises(fo.FusionInputError, match=match):
