@@ -126,8 +126,7 @@ def real_array(x, name: str) -> np.ndarray:
         a = np.asarray(x)
     except (TypeError, ValueError) as exc:
         raise FusionInputError(f"{name} must be an array of real numbers ({exc})") from None
-    if a.dtype.kind == "O" and a.size and all(
-            is_real(v) for v in a.flat):
+    if a.dtype.kind == "O" and a.size and all(map(is_real, a.flat)):
         return _reals(a, name)  # Fraction, int beyond int64: numbers numpy keeps as objects
     if a.dtype.kind == "O" and a.size == 0:  # an empty object array (a table's empty
         return a.astype(float)  # column) holds no wrong value (fuzz L3)

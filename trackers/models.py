@@ -93,8 +93,8 @@ def _check_doublings(F, A, s: int, dt: float) -> None:
     """Refuses A = expm(F dt) (n, n) made by s doublings (`_doubled`) whose log |det A|
     differs from tr(F) dt, which it equals exactly, by more than _DOUBLING_RTOL beyond what
     the LU of A can resolve (n eps cond(A); nothing where cond(A) is past 1 / eps: a stiff
-    stable model's A underflows, and its doublings shrink their rounding anyway). Each doubling
-    doubles the drift of a rotation's size: a turn rate of 1e17 rad/s over dt = 0.1 (55
+    stable model's A underflows, and its doublings shrink their rounding anyway). Each
+    doubling doubles the drift of a rotation's size: a turn rate of 1e17 rad/s over dt = 0.1 (55
     doublings) made a "rotation" that grew velocities by 54 % a step, 1.8e18 one that
     shrank them to 1.8e-5 (fuzz U8)."""
     n = A.shape[0]
@@ -123,6 +123,8 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     that was not even PSD). So it is taken over h = dt / 2^s with |F|_1 h <= 1/2, and the
     step is doubled s times, exactly: Q(2h) = Q(h) + A(h) Q(h) A(h)^T, A(2h) = A(h)^2
     (s = 0, the one exponential, wherever |F|_1 dt <= 1/2, e.g. every turn model here).
+    Each doubling doubles the rounding of a rotation: a result whose determinant has
+    drifted from exp(tr(F) dt) is refused (`_check_doublings`).
     """
     F = _checks.finite_array("F", F, ndim=2)
     n = F.shape[0]
