@@ -40,7 +40,7 @@ tracks each fused track came from.
 from __future__ import annotations
 
 from collections import Counter, defaultdict
-from collections.abc import Hashable, Mapping, Set
+from collections.abc import Hashable, Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -225,10 +225,9 @@ class ProcessingNode:
         return "ProcessingNode" if self.name is None else f"ProcessingNode {safe_repr(self.name)}"
 
     def _check_sources(self, sources) -> tuple:
-        if not is_sequence(sources) or isinstance(sources, Set):  # a set's order (its nodes'
-            raise self._err(  # numbers) changes between processes with the hash seed (U11)
-                f"sources must be a sequence of source names (a list or tuple: a set has no "
-                f"order), got {safe_repr(sources)}")
+        if not is_sequence(sources):
+            raise self._err(f"sources must be a sequence of source names (a list or tuple: "
+                            f"a set has no order), got {safe_repr(sources)}")
         sources = tuple(sources)
         if not sources:
             raise self._err("sources is empty: a processing node needs at least one source")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping
+from collections.abc import Mapping, Set
 
 import numpy as np
 
@@ -45,9 +45,10 @@ def is_integer(x) -> bool:
 
 def is_sequence(x) -> bool:
     """Whether x can be a sequence of items (names, components, ids, targets): iterable, and
-    not a string, bytes, a mapping (whose keys would be the items) or a 0-d array, which
-    has __iter__ but raises TypeError when iterated (fuzz U5, U6)."""
-    return hasattr(x, "__iter__") and not isinstance(x, str | bytes | Mapping) \
+    not a string, bytes, a mapping (whose keys would be the items), a set (whose order,
+    which numbers the items, changes between processes with the hash seed: fuzz U11) or a
+    0-d array, which has __iter__ but raises TypeError when iterated (fuzz U5, U6)."""
+    return hasattr(x, "__iter__") and not isinstance(x, str | bytes | Mapping | Set) \
         and not (isinstance(x, np.ndarray) and x.ndim == 0)
 
 

@@ -396,8 +396,9 @@ def test_memory_that_is_allocated_at_once_is_counted_at_once(monkeypatch):
     assert s.shape == (10, 8) and (s[:, 1:] == chi[0]).all() and (s[:, 0] > 0).all()
 
 
-@pytest.mark.parametrize("N, n, method", [(N, n, method) for N, n in ((2, 1), (2, 2), (3, 4))
-                                           for method in ("bci", "fast-ci", "ici")[:3 - N + 2]])
+@pytest.mark.parametrize("N, n, method", [
+    (2, 1, "bci"), (2, 1, "fast-ci"), (2, 1, "ici"), (2, 2, "bci"), (2, 2, "fast-ci"),
+    (2, 2, "ici"), (3, 4, "bci"), (3, 4, "fast-ci")])
 def test_a_batch_allocates_no_more_than_its_memory_estimate(N, n, method):
     """Fuzz U9: `limits.batch_bytes` counted arrays per node only, and a batch at n = 1, 2
     (whose per-problem results weigh as much as its nodes) peaked at 1.2-1.7 times the

@@ -174,3 +174,14 @@ def test_a_timedelta64_is_no_number(name, call, value):
 def _rbpf(**kwargs):
     return RBPF(models.turn_model(0.0, 0.05, 0.01, 0.1), np.zeros(4), np.eye(4),
                 rng=np.random.default_rng(0), **kwargs)
+
+
+def test_a_set_is_no_sequence_wherever_items_are_numbered():
+    """Fuzz U11, at its depth: a set's order, which numbers sources, targets and ids, changes
+    between processes with the hash seed, so `is_sequence` refuses it for every caller."""
+    from fusion_opt.validation import is_sequence
+
+    assert all(map(is_sequence, ([1], (1,), iter([1]), np.arange(2))))
+    assert not any(map(is_sequence, ({1}, frozenset([1]), {"a": 1}, "ab", np.array(1))))
+    with pytest.raises(fo.FusionInputError, match="ids must be a sequence of id sequences"):
+        metrics.id_switches({(1, 2), (3, 3)})
