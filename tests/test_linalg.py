@@ -92,6 +92,45 @@ def test_householder_is_a_qr_and_blocks_like_one_column_at_a_time(n, rows):
         np.testing.assert_array_equal(R[k, k + 1:], X[k + 1:, k])
 
 
+@pytest.mark.parametrize("n,rows", [(129, 129), (150, 303), (200, 410)])
+def test_householder_above_blocked_is_a_qr_by_blocks(n, rows):
+    """Above BLOCKED columns householder works by blocks of NB (compact WY through BLAS):
+    its reflectors are unit vectors (or zero), Q^T A = [R; 0] with Q^T applied column by
+    column by apply_qt, and R is LAPACK's (numpy's) up to the signs of its rows; columns
+    of scales 1e-3..1e3, then the same with a zero column and a repeated one inside a
+    block (rank deficient: R is not unique, the QR still holds)."""
+    assert n > linalg.BLOCKED
+    rng = np.random.default_rng([124, n, rows])
+    A = rng.standard_normal((rows, n)) * 10.0 ** rng.uniform(-3, 3, n)
+    R = _blocked_qr_checked(A)
+    R_np = np.linalg.qr(A, mode="r")
+    signs = np.where(np.sign(np.diag(R)) == np.sign(np.diag(R_np)), 1.0, -1.0)
+    np.testing.assert_allclose(signs[:, None] * R_np, R, rtol=0,
+                               atol=1e-13 * np.abs(A).max())
+    A[:, 40] = 0.0
+    A[:, 70] = A[:, 69]
+    _blocked_qr_checked(A)
+
+
+def _blocked_qr_checked(A):
+    """householder's R of A (rows, n), after checking its reflectors and Q^T A = [R; 0]."""
+    rows, n = A.shape
+    At, Vt, R = np.ascontiguousarray(A.T), np.zeros((n, rows)), np.empty((n, n))
+    linalg.householder(At, n, rows, Vt, R)
+    norms = np.linalg.norm(Vt, axis=1)
+    assert np.all((np.abs(norms - 1.0) <= 1e-14) | (norms == 0.0))
+    QtA = np.empty_like(A)
+    for j in range(n):
+        b = A[:, j].copy()
+        linalg.apply_qt(Vt, n, rows, b)
+        QtA[:, j] = b
+    scale = np.abs(A).max()
+    assert np.abs(QtA[:n] - R).max() <= 1e-13 * scale
+    assert np.abs(QtA[n:]).max(initial=0.0) <= 1e-13 * scale
+    assert np.array_equal(R, np.triu(R))
+    return R
+
+
 @pytest.mark.parametrize("n,rows", [(1, 3), (3, 17), (5, 17), (9, 40), (37, 37)])
 def test_householder_column_appends_the_columns_of_householder_bit_for_bit(n, rows):
     """Columns added one at a time (the NNLS of backends/newton.py keeps its QR so) give
@@ -156,6 +195,26 @@ def test_lower_inverse_by_rows_gives_the_bits_of_the_column_loop(n):
             loop[i, j] = t / L[i, i]
     np.testing.assert_array_equal(X, loop)
     assert np.abs(X @ L - np.eye(n)).max() <= 1e-12
+
+
+@pytest.mark.parametrize("n", [1, 3, 8, 9, 40])
+def test_upper_inverse_by_rows_gives_the_bits_of_the_column_loop(n):
+    """Above order 8 upper_inverse runs by rows of X, from the last (by columns it took
+    0.10 s at 800): the same bits as the plain column loop, and the inverse to rounding."""
+    rng = np.random.default_rng(n)
+    R = np.triu(rng.standard_normal((n, n))) + 3.0 * np.eye(n)
+    X = np.empty((n, n))
+    linalg.upper_inverse(R, X)
+    loop = np.zeros((n, n))
+    for j in range(n):
+        loop[j, j] = 1.0 / R[j, j]
+        for i in range(j - 1, -1, -1):
+            t = 0.0
+            for p in range(i + 1, j + 1):
+                t -= R[i, p] * loop[p, j]
+            loop[i, j] = t / R[i, i]
+    np.testing.assert_array_equal(X, loop)
+    assert np.abs(X @ R - np.eye(n)).max() <= 1e-12
 
 
 @pytest.mark.parametrize("m, k", [(1, 1), (5, 2), (70, 4)])

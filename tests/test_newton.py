@@ -360,3 +360,45 @@ def test_work_buffers_have_their_shapes_and_share_no_memory(N, n):
     ws = work(N, n)
     assert np.all(ws.Et[:, m] == 1.0) and not ws.mask.any()
     assert all(a.flags.c_contiguous for a in ws)
+
+
+@pytest.mark.parametrize("n", [17, 40])
+def test_pair_above_small_diagonalises_by_lapack_as_the_loops_do(n):
+    """Above SMALL the pair's QR, eigendecomposition and products are LAPACK and BLAS
+    (closed_form._blocked_products); the loops (_products) give the same R (up to the
+    signs of its rows), eigenvalues and nu_k = |Q_a V_k|^2, tau_k = |Q_b V_k|^2."""
+    F, _ = _factors(instance(np.random.default_rng(n), 2, n, "random"))
+    ws, wb = work(2, n), work(2, n)
+    closed_form._products(F, ws.At, ws.Vt, ws.R, ws.B, ws.X, ws.S, ws.U, ws.lam)
+    closed_form._blocked_products(F, wb.R, wb.B, wb.X, wb.S, wb.U, wb.lam)
+    signs = np.where(np.sign(np.diag(ws.R)) == np.sign(np.diag(wb.R)), 1.0, -1.0)
+    np.testing.assert_allclose(signs[:, None] * wb.R, ws.R, rtol=0,
+                               atol=1e-13 * np.abs(ws.R).max())
+    np.testing.assert_allclose(wb.lam, ws.lam, rtol=0, atol=1e-13)
+    for M in ("B", "X"):
+        np.testing.assert_allclose((getattr(wb, M) ** 2).sum(0), (getattr(ws, M) ** 2).sum(0),
+                                   rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize(("N", "n"), [(2, 150), (3, 130)])
+def test_large_n_is_optimal_by_the_numpy_criteria(N, n, criterion):
+    """Above BLOCKED = 128 the QR goes by blocks, and a pair above SMALL through LAPACK:
+    the objective and certificate of fo.bci against f and g of criteria.py from inverted
+    informations at the returned weights, and for a pair against a bounded 1-D search."""
+    rng = np.random.default_rng(n)
+    covs, means = instance(rng, N, n, "random"), rng.standard_normal((N, n))
+    r = fo.bci(means, covs, criterion)
+    Ys = np.linalg.inv(covs)
+    ev = evaluate(Ys, r.weights, criterion)
+    scale = abs(ev.f) if criterion == "trace" else 1.0
+    assert abs(r.objective - ev.f) <= 1e-10 * scale
+    assert ev.g @ r.weights - ev.g.min() <= 1e-10 * scale
+    np.testing.assert_allclose(r.cov, np.linalg.inv(np.tensordot(r.weights, Ys, 1)),
+                               rtol=1e-9, atol=1e-12 * np.abs(r.cov).max())
+    if N == 2:
+        import scipy.optimize
+        ref = scipy.optimize.minimize_scalar(
+            lambda w: evaluate(Ys, np.array([w, 1.0 - w]), criterion).f, bounds=(0.0, 1.0),
+            method="bounded", options={"xatol": 1e-10})
+        assert r.objective <= ref.fun + 1e-12 * scale
