@@ -92,43 +92,26 @@ def test_householder_is_a_qr_and_blocks_like_one_column_at_a_time(n, rows):
         np.testing.assert_array_equal(R[k, k + 1:], X[k + 1:, k])
 
 
-@pytest.mark.parametrize("n,rows", [(129, 129), (150, 303), (200, 410)])
-def test_householder_above_blocked_is_a_qr_by_blocks(n, rows):
-    """Above BLOCKED columns householder works by blocks of NB (compact WY through BLAS):
-    its reflectors are unit vectors (or zero), Q^T A = [R; 0] with Q^T applied column by
-    column by apply_qt, and R is LAPACK's (numpy's) up to the signs of its rows; columns
-    of scales 1e-3..1e3, then the same with a zero column and a repeated one inside a
-    block (rank deficient: R is not unique, the QR still holds)."""
-    assert n > linalg.BLOCKED
-    rng = np.random.default_rng([124, n, rows])
-    A = rng.standard_normal((rows, n)) * 10.0 ** rng.uniform(-3, 3, n)
-    R = _blocked_qr_checked(A)
-    R_np = np.linalg.qr(A, mode="r")
-    signs = np.where(np.sign(np.diag(R)) == np.sign(np.diag(R_np)), 1.0, -1.0)
-    np.testing.assert_allclose(signs[:, None] * R_np, R, rtol=0,
-                               atol=1e-13 * np.abs(A).max())
-    A[:, 40] = 0.0
-    A[:, 70] = A[:, 69]
-    _blocked_qr_checked(A)
-
-
-def _blocked_qr_checked(A):
-    """householder's R of A (rows, n), after checking its reflectors and Q^T A = [R; 0]."""
-    rows, n = A.shape
+@pytest.mark.parametrize("n,rows", [(1, 2), (3, 6), (5, 10), (9, 23), (30, 60)])
+def test_thin_qt_is_q_and_gives_the_bits_of_one_column_at_a_time(n, rows):
+    """thin_qt takes four columns at a time through each reflector: the same bits as
+    H_j ... H_0 e_j column by column with sums in the order of i, and Q^T Q = I, Q R = A."""
+    rng = np.random.default_rng([126, n, rows])
+    A = rng.standard_normal((rows, n))
     At, Vt, R = np.ascontiguousarray(A.T), np.zeros((n, rows)), np.empty((n, n))
     linalg.householder(At, n, rows, Vt, R)
-    norms = np.linalg.norm(Vt, axis=1)
-    assert np.all((np.abs(norms - 1.0) <= 1e-14) | (norms == 0.0))
-    QtA = np.empty_like(A)
+    Qt = np.full((n, rows), np.nan)
+    linalg.thin_qt(Vt, n, rows, Qt)
     for j in range(n):
-        b = A[:, j].copy()
-        linalg.apply_qt(Vt, n, rows, b)
-        QtA[:, j] = b
-    scale = np.abs(A).max()
-    assert np.abs(QtA[:n] - R).max() <= 1e-13 * scale
-    assert np.abs(QtA[n:]).max(initial=0.0) <= 1e-13 * scale
-    assert np.array_equal(R, np.triu(R))
-    return R
+        x = np.eye(rows)[j]
+        for k in range(j, -1, -1):
+            t = 0.0
+            for i in range(k, rows):
+                t += Vt[k, i] * x[i]
+            x[k:] -= 2.0 * t * Vt[k, k:]
+        np.testing.assert_array_equal(Qt[j], x)
+    assert np.abs(Qt @ Qt.T - np.eye(n)).max() <= 1e-14 * n
+    assert np.abs(Qt.T @ R - A).max() <= 1e-14 * n * np.abs(A).max()
 
 
 @pytest.mark.parametrize("n,rows", [(1, 3), (3, 17), (5, 17), (9, 40), (37, 37)])
@@ -245,3 +228,4 @@ def test_row_norms_hold_any_scale_without_squares_that_overflow():
     assert linalg.row_norms(np.array([[np.inf, 0.0], [-np.inf, 1.0]])).tolist() == [np.inf] * 2
     assert linalg.row_norms(np.zeros((2, 0))).tolist() == [0.0, 0.0]
     assert linalg.row_norms(np.zeros((3, 2))).tolist() == [0.0, 0.0, 0.0]
+

@@ -11,7 +11,7 @@ import pytest
 from conftest import EXTREME_KINDS, extreme_instance, instance, objective
 
 import fusion_opt as fo
-from fusion_opt import core, factored
+from fusion_opt import core, factored, linalg
 from fusion_opt.assemble import assemble
 from fusion_opt.backends import closed_form, newton
 from fusion_opt.criteria import evaluate
@@ -362,29 +362,39 @@ def test_work_buffers_have_their_shapes_and_share_no_memory(N, n):
     assert all(a.flags.c_contiguous for a in ws)
 
 
-@pytest.mark.parametrize("n", [17, 40])
-def test_pair_above_small_diagonalises_by_lapack_as_the_loops_do(n):
-    """Above SMALL the pair's QR, eigendecomposition and products are LAPACK and BLAS
-    (closed_form._blocked_products); the loops (_products) give the same R (up to the
-    signs of its rows), eigenvalues and nu_k = |Q_a V_k|^2, tau_k = |Q_b V_k|^2."""
+@pytest.mark.parametrize("n", [3, 17, 60])
+def test_pair_products_through_blas_are_the_loops_products(n):
+    """Above SMALL a pair's S = Q_a^T Q_a and B = Q_a U, X = Q_b U are BLAS products of
+    copies of Q_a and Q_b (closed_form._q_blocks): the same as the loops (_q_gram,
+    _q_times) to rounding, and Q_a^T Q_a + Q_b^T Q_b = I."""
     F, _ = _factors(instance(np.random.default_rng(n), 2, n, "random"))
-    ws, wb = work(2, n), work(2, n)
-    closed_form._products(F, ws.At, ws.Vt, ws.R, ws.B, ws.X, ws.S, ws.U, ws.lam)
-    closed_form._blocked_products(F, wb.R, wb.B, wb.X, wb.S, wb.U, wb.lam)
-    signs = np.where(np.sign(np.diag(ws.R)) == np.sign(np.diag(wb.R)), 1.0, -1.0)
-    np.testing.assert_allclose(signs[:, None] * wb.R, ws.R, rtol=0,
-                               atol=1e-13 * np.abs(ws.R).max())
-    np.testing.assert_allclose(wb.lam, ws.lam, rtol=0, atol=1e-13)
-    for M in ("B", "X"):
-        np.testing.assert_allclose((getattr(wb, M) ** 2).sum(0), (getattr(ws, M) ** 2).sum(0),
-                                   rtol=0, atol=1e-12)
+    ws = work(2, n)
+    for a in range(n):
+        ws.At[:, a], ws.At[:, n + a] = F[0, a], F[1, a]
+    linalg.householder(ws.At, n, 2 * n, ws.Vt, ws.R)
+    linalg.thin_qt(ws.Vt, n, 2 * n, ws.At)
+    Qa, Qb, S, Sb, S_loops = (np.empty((n, n)) for _ in range(5))
+    closed_form._q_blocks(ws.At, Qa, Qb)
+    np.testing.assert_array_equal(np.hstack([Qa.T, Qb.T]), ws.At[:, :2 * n])
+    linalg.gram(Qa, S)
+    linalg.gram(Qb, Sb)
+    closed_form._q_gram(ws.At, S_loops)
+    np.testing.assert_allclose(S, S_loops, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(S + Sb, np.eye(n), rtol=0, atol=1e-13)
+    U = np.linalg.qr(np.random.default_rng(0).standard_normal((n, n)))[0]
+    B, X, B_loops, X_loops = (np.empty((n, n)) for _ in range(4))
+    linalg.matmul(Qa, U, B)
+    linalg.matmul(Qb, U, X)
+    closed_form._q_times(ws.At, U, B_loops, X_loops)
+    np.testing.assert_allclose(B, B_loops, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(X, X_loops, rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize("criterion", CRITERIA)
 @pytest.mark.parametrize(("N", "n"), [(2, 150), (3, 130)])
 def test_large_n_is_optimal_by_the_numpy_criteria(N, n, criterion):
-    """Above BLOCKED = 128 the QR goes by blocks, and a pair above SMALL through LAPACK:
-    the objective and certificate of fo.bci against f and g of criteria.py from inverted
+    """At large n (a pair's products through BLAS, the triangular inverse by rows): the
+    objective and certificate of fo.bci against f and g of criteria.py from inverted
     informations at the returned weights, and for a pair against a bounded 1-D search."""
     rng = np.random.default_rng(n)
     covs, means = instance(rng, N, n, "random"), rng.standard_normal((N, n))

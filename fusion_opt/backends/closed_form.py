@@ -29,7 +29,6 @@ import numpy as np
 
 from ..linalg import (
     SMALL,
-    copy,
     eigh,
     gram,
     householder,
@@ -68,10 +67,22 @@ def diagonalise(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
     """abc (3, n) = a, b, c of the module docstring: d_k(w) = b_k + w a_k and the trace
     weights; the other arrays are scratch (At (n, >= 2n), n x n, lam (n,))."""
     n = F.shape[1]
-    if n > SMALL:
-        _blocked_products(F, R, B, X, S, U, lam)
+    for a in range(n):  # [F_a; F_b]^T in the first 2n columns of At
+        for b in range(n):
+            At[b, a], At[b, n + a] = F[0, a, b], F[1, a, b]
+    householder(At, n, 2 * n, Vt, R)
+    thin_qt(Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
+    if n > SMALL:  # through BLAS, from copies of Q_a and Q_b in Ri and P (free until below)
+        _q_blocks(At, Ri, P)
+        gram(Ri, S)
     else:
-        _products(F, At, Vt, R, B, X, S, U, lam)
+        _q_gram(At, S)
+    eigh(S, lam, U)
+    if n > SMALL:
+        matmul(Ri, U, B)
+        matmul(P, U, X)
+    else:
+        _q_times(At, U, B, X)
     for k in range(n):
         nu, tau = _column_sumsq(B, k), _column_sumsq(X, k)
         abc[0, k], abc[1, k], abc[2, k] = nu - tau, tau, 1.0
@@ -83,42 +94,38 @@ def diagonalise(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
 
 
 @inline
-def _products(F, At, Vt, R, B, X, S, U, lam):
-    """The QR [F_a; F_b] = [Q_a; Q_b] R, S = Q_a^T Q_a = U diag(lam) U^T, B = Q_a U and
-    X = Q_b U, by loops (n <= SMALL; At, Vt scratch)."""
-    n = F.shape[1]
-    for a in range(n):  # [F_a; F_b]^T in the first 2n columns of At
-        for b in range(n):
-            At[b, a], At[b, n + a] = F[0, a, b], F[1, a, b]
-    householder(At, n, 2 * n, Vt, R)
-    thin_qt(Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
-    for a in range(n):  # S = Q_a^T Q_a
+def _q_gram(Qt, S):
+    """S = Q_a^T Q_a from Qt = [Q_a^T, Q_b^T] (n, >= 2n), by loops (n <= SMALL)."""
+    n = S.shape[0]
+    for a in range(n):
         for b in range(a, n):
             t = 0.0
             for r in range(n):
-                t += At[a, r] * At[b, r]
+                t += Qt[a, r] * Qt[b, r]
             S[a, b] = S[b, a] = t
-    eigh(S, lam, U)
-    for r in range(n):  # B = Q_a V, X = Q_b V
+
+
+@inline
+def _q_times(Qt, U, B, X):
+    """B = Q_a U and X = Q_b U from Qt = [Q_a^T, Q_b^T], by loops (n <= SMALL)."""
+    n = U.shape[0]
+    for r in range(n):
         for k in range(n):
             ta = tb = 0.0
             for a in range(n):
-                ta += At[a, r] * U[a, k]
-                tb += At[a, n + r] * U[a, k]
+                ta += Qt[a, r] * U[a, k]
+                tb += Qt[a, n + r] * U[a, k]
             B[r, k], X[r, k] = ta, tb
 
 
 @jit
-def _blocked_products(F, R, B, X, S, U, lam):
-    """`_products` by LAPACK and BLAS (n > SMALL): the loops' strides and unblocked QR
-    took 9.4 s of a pair's 9.8 at n = 800, one BLAS thread."""
-    n = F.shape[1]
-    Q, Rq = np.linalg.qr(np.ascontiguousarray(F).reshape((2 * n, n)))
-    copy(R, Rq)
-    gram(Q[:n], S)
-    eigh(S, lam, U)
-    matmul(Q[:n], U, B)
-    matmul(Q[n:], U, X)
+def _q_blocks(Qt, Qa, Qb):
+    """Qa = Q_a and Qb = Q_b, C-contiguous, from Qt = [Q_a^T, Q_b^T]: BLAS on them instead
+    of `_q_gram` and `_q_times`, whose strides took 7.0 of a pair's 9.8 s at n = 800."""
+    n = Qa.shape[0]
+    for r in range(n):
+        for a in range(n):
+            Qa[r, a], Qb[r, a] = Qt[a, r], Qt[a, n + r]
 
 
 @jit
