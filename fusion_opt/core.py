@@ -433,12 +433,18 @@ def _polish(a, trace) -> int:
 def _rescue(req, means, covs, q, E, a):
     """Problems whose native certificate is not within OPTIMAL_RTOL (rounding level on a
     hard problem) are solved again by "clarabel-direct" and polished; per problem, the
-    result with the better certificate is kept."""
+    result with the better certificate is kept. Not where Clarabel's solve is over
+    fusion_opt.limits (`over_memory`: at n = 150 its KKT system would take tens of GiB,
+    and the rescue of a result spoiled on purpose there was killed for memory): the
+    native result stands, with its certificate (status optimal_inaccurate)."""
+    rescue = Request(req.method, req.criterion, "clarabel-direct", True, req.args)
+    if over_memory(rescue, a.F.shape[3], a.F.shape[2]) is not None:
+        return
     for b in np.flatnonzero(a.stats[:, 2] > OPTIMAL_RTOL):
         one = _Arrays(1, *a.F.shape[1:3])
         try:
-            _conic(Request(req.method, req.criterion, "clarabel-direct", True, req.args),
-                   means[b:b + 1], covs[b:b + 1], q[b:b + 1], E[b:b + 1], one, Names(), True)
+            _conic(rescue, means[b:b + 1], covs[b:b + 1], q[b:b + 1], E[b:b + 1], one,
+                   Names(), True)
         except FusionSolverError:
             continue
         if one.stats[0, 2] < a.stats[b, 2]:

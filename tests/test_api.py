@@ -88,23 +88,39 @@ def test_limits_are_settable_and_checked(monkeypatch):
         fo.limits.working_memroy = 1e9  # misspelt: would change nothing
 
 
+def _spoiled(real):
+    """core.fuse_exact, whose one result then holds a vertex that is not the optimum,
+    reported as uncertified (the fused estimate and objective stay the optimum's)."""
+    def spoiled(*args):
+        code = real(*args)
+        W, stats = args[10], args[15]
+        W[:] = np.eye(W.shape[1])[0]
+        stats[:, 2] = 1.0
+        return code
+    return spoiled
+
+
 def test_an_uncertified_native_solve_is_rescued_from_clarabels_weights(monkeypatch):
     """If the compiled solve ends above OPTIMAL_RTOL (rounding on a hard problem), the
     core solves again from Clarabel's weights and keeps the better certificate."""
-    real = core.fuse_exact
-
-    def spoiled(*args):
-        code = real(*args)
-        W, rel = args[10], args[11]
-        W[:] = np.eye(W.shape[1])[0]  # a vertex that is not the optimum
-        rel[:] = 1.0
-        return code
-
-    monkeypatch.setattr(core, "fuse_exact", spoiled)
+    monkeypatch.setattr(core, "fuse_exact", _spoiled(core.fuse_exact))
     r = fo.bci(MEANS, COVS)
     monkeypatch.undo()
     ref = fo.bci(MEANS, COVS, backend="clarabel")
     assert r.status == "optimal" and r.objective == pytest.approx(ref.objective, rel=1e-12)
+    np.testing.assert_allclose(r.weights, ref.weights, atol=1e-6)
+
+
+def test_no_rescue_where_clarabel_is_over_its_memory_limit(monkeypatch):
+    """Where Clarabel's KKT system would exceed fo.limits.conic_memory (at n = 150 tens
+    of GiB) the uncertified native result stands, reported optimal_inaccurate, and
+    Clarabel is not called (the rescue of a spoiled result at n = 150 was killed for
+    memory)."""
+    monkeypatch.setattr(core, "fuse_exact", _spoiled(core.fuse_exact))
+    monkeypatch.setattr(core, "_conic", lambda *args: pytest.fail("Clarabel was called"))
+    monkeypatch.setattr(fo.limits, "conic_memory", 1.0)
+    r = fo.bci(MEANS, COVS)
+    assert r.status == "optimal_inaccurate" and r.gap >= 0.0
 
 
 def test_readme_examples_run():
