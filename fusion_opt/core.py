@@ -437,11 +437,12 @@ def _rescue(req, means, covs, q, E, a):
     fusion_opt.limits (`over_memory`: at n = 150 its KKT system would take tens of GiB,
     and the rescue of a result spoiled on purpose there was killed for memory): the
     native result stands, with its certificate (status optimal_inaccurate)."""
+    _, N, n, _ = a.F.shape
     rescue = Request(req.method, req.criterion, "clarabel-direct", True, req.args)
-    if over_memory(rescue, a.F.shape[3], a.F.shape[2]) is not None:
+    if over_memory(rescue, n, N) is not None:
         return
     for b in np.flatnonzero(a.stats[:, 2] > OPTIMAL_RTOL):
-        one = _Arrays(1, *a.F.shape[1:3])
+        one = _Arrays(1, N, n)
         try:
             _conic(rescue, means[b:b + 1], covs[b:b + 1], q[b:b + 1], E[b:b + 1], one,
                    Names(), True)

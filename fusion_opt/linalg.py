@@ -54,6 +54,7 @@ from numba.core import types as _numba_types
 from numba.core.compiler_lock import global_compiler_lock
 
 SMALL = 16
+BY_ROWS = 8  # the triangular inverses go by rows of X above this order
 _JACOBI_SWEEPS = 60
 _EPS = np.finfo(np.float64).eps
 _STAMP = "fusion_opt-kernels.stamp"
@@ -290,10 +291,10 @@ def cholesky(A, L) -> bool:
 @jit
 def lower_inverse(L, X):
     """X = L^-1 for a lower-triangular L with a nonzero diagonal (X may not be L). Above
-    order 8 by rows of X (each entry's sum in the same order, so the same bits: at 256 the
+    order BY_ROWS by rows of X (each entry's sum in the same order, so the same bits: at 256 the
     columns' stride made it 4.5 against 1.0 ms; at 6, 0.13 against 0.17 us the other way)."""
     n = L.shape[0]
-    if n > 8:
+    if n > BY_ROWS:
         _lower_inverse_rows(L, X)
         return
     for j in range(n):
@@ -361,9 +362,9 @@ def lower_t_solve(L, Bt, X):
 @jit
 def upper_inverse(R, X):
     """X = R^-1 for an upper-triangular R with a nonzero diagonal (X may not be R); above
-    order 8 by rows of X, as `lower_inverse` (the same bits; at 800, 0.10 s by columns)."""
+    order BY_ROWS by rows of X, as `lower_inverse` (the same bits; at 800, 0.10 s by columns)."""
     n = R.shape[0]
-    if n > 8:
+    if n > BY_ROWS:
         _upper_inverse_rows(R, X)
         return
     for j in range(n):
