@@ -45,7 +45,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .association import Group, associate, check_dims, check_method, check_threshold
+from .association import Group, check_dims, check_method, check_threshold, groups_of
 from .backends import BACKENDS
 from .batch import fuse_batch
 from .core import DEFAULT_BACKEND
@@ -110,7 +110,8 @@ class ProcessingNode:
         """Fused estimates of this step from reports {source: Estimates} (module docstring)."""
         reports, n = self._check_reports(reports)
         time = self._step_time(reports, time)
-        groups = [g for g in associate(reports, self.threshold, self.association, self.dims)
+        groups = [g for g in groups_of(list(reports), list(reports.values()), self.threshold,
+                                       self.association, self.dims)
                   if len(g) >= self.min_sources]
         means, covs = self._fuse(groups, n)
         ids = self._ids(groups, means)
@@ -339,7 +340,8 @@ class ProcessingNode:
                             f"{safe_repr(other)} from sources {safe_repr(list(other))}")
         if n is None:
             raise self._err("no reports at its first step: the state dimension is unknown")
-        check_dims(self.dims, n)
+        if n != self._n:  # the first step (later steps have n = self._n, checked above)
+            check_dims(self.dims, n)
         return ordered, n
 
     def _step_time(self, reports: dict[Hashable, Estimates], time) -> float | None:

@@ -212,10 +212,12 @@ def test_joining_pair_by_pair_checks_the_memory_limit(monkeypatch):
 
 
 def test_candidate_pairs_hold_every_pair_closer_than_the_threshold():
-    """`_candidates` (the k-d tree's Euclidean query in the normal range, the maximum norm
-    beyond it) misses no pair that `_distance` puts within the threshold, at scales from
-    1e-120 to 1e120 and with pairs one ulp either side of it (brute force over all pairs)."""
-    from fusion_opt.association import _candidates, _distance
+    """`_tree_candidates` (the k-d tree's Euclidean query in the normal range, the maximum
+    norm beyond it) misses no pair that `_distance` puts within the threshold, at scales
+    from 1e-120 to 1e120 and with pairs one ulp either side of it (brute force over all
+    pairs)."""
+    from fusion_opt.association import _distance
+    from fusion_opt.association import _tree_candidates as _candidates
 
     rng = np.random.default_rng(7)
     for scale in (1e-120, 1e-99, 1e-30, 1.0, 1e30, 1e99, 1e120):
@@ -230,6 +232,31 @@ def test_candidate_pairs_hold_every_pair_closer_than_the_threshold():
             missed = [(a, b) for a, b, c in zip(i, j, near, strict=True) if c and (a, b) not in got]
             assert not missed, (scale, missed)
             assert near.any()
+
+
+def test_groups_are_the_same_from_all_pairs_and_from_the_tree(monkeypatch):
+    """Up to `_ALL_PAIRS` estimates every pair is a candidate, beyond it the k-d tree's: the
+    groups are the same either way (here: 40 estimates from 4 sources, many components
+    holding two of one source, so that pairs are joined one by one in their order), at
+    scales from 1e-120 to 1e120."""
+    from fusion_opt import association
+
+    joins = []
+    joined = association._joined
+    monkeypatch.setattr(association, "_joined", lambda *a: joins.append(1) or joined(*a))
+    rng = np.random.default_rng(11)
+    for scale in (1e-120, 1.0, 1e120):
+        for _ in range(20):
+            reports = {f"s{k}": fo.Estimates(scale * rng.uniform(0, 4, size=(10, 2)),
+                                             np.broadcast_to(np.eye(2), (10, 2, 2)))
+                       for k in range(4)}
+            threshold = scale * rng.uniform(0.2, 1.0)
+            small = fo.associate(reports, threshold)
+            monkeypatch.setattr(association, "_ALL_PAIRS", 0)
+            tree = fo.associate(reports, threshold)
+            monkeypatch.setattr(association, "_ALL_PAIRS", 64)
+            assert [g.pairs for g in small] == [g.pairs for g in tree]
+    assert len(joins) > 100  # most of the 60 cases joined pairs one by one (both ways)
 
 
 def test_means_near_the_float_limit_raise_no_warning():
