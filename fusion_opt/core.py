@@ -539,8 +539,8 @@ def _result(req, out, batch):
     iterations, each B of them (a sequence); solve time, polish iterations, weights_are."""
     w, mean, cov, obj, gap, status, iters, solve_time, polish_iters, weights_are = out
     if batch:
-        return BatchFusionResult(w, mean, cov, obj, gap, status, iters, req.backend,
-                                 solve_time, req.method, req.criterion, weights_are)
+        return BatchFusionResult.owning(w, mean, cov, obj, gap, status, iters, req.backend,
+                                        solve_time, req.method, req.criterion, weights_are)
     return FusionResult.owning(
         w[0], mean[0], cov[0], float(obj[0]), float(gap[0]), status[0], req.backend,
         solve_time, int(iters[0]), req.method, req.criterion, polish_iters, weights_are)

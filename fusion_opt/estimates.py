@@ -65,6 +65,19 @@ class Estimates:
             object.__setattr__(self, name, value)
 
     @classmethod
+    def _of(cls, means, covs, ids, time, node) -> Estimates:
+        """Estimates of new arrays the library made and checked, taken without the checks
+        (40 of a processing node's 500 us step at 3 sources of 4 tracks): a processing
+        node's fused estimates, finite, positive definite and exactly symmetric as the
+        fusion makes them, or a source's as given, ids int64 and unique, time and node
+        checked. The arrays are made read-only in place (nothing else writes to them)."""
+        for a in (means, covs, ids):
+            a.setflags(write=False)
+        estimates = object.__new__(cls)
+        estimates.__dict__.update(means=means, covs=covs, ids=ids, time=time, node=node)
+        return estimates
+
+    @classmethod
     def empty(cls, n: int, time: float | None = None, node: Hashable | None = None):
         """No estimate of an n-dimensional state (a step with nothing to report)."""
         if not is_integer(n) or n < 1:

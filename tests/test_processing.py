@@ -25,8 +25,20 @@ def _scene(rng, sources, n_targets, n=4, spacing=20.0, p_seen=0.8, noise=0.3):
     return reports
 
 
+def _check_as_checked(fused):
+    """The node's Estimates, made without checks (`Estimates._of`), are what the checked
+    constructor makes of them, bit for bit (covariances exactly symmetric and positive
+    definite, means finite, ids unique), and read-only."""
+    again = fo.Estimates(fused.means, fused.covs, fused.ids, fused.time, fused.node)
+    for name in ("means", "covs", "ids"):
+        np.testing.assert_array_equal(getattr(fused, name), getattr(again, name))
+        assert getattr(fused, name).dtype == getattr(again, name).dtype
+        assert not getattr(fused, name).flags.writeable
+
+
 def _check_against_fuse(node, reports, fused, method_args):
     """Every fused track is fo.fuse (Clarabel) on its group; singletons unchanged."""
+    _check_as_checked(fused)
     assert sorted(sorted(g.pairs) for g in node.groups.values()) == sorted(
         sorted(g.pairs) for g in fo.associate(reports, node.threshold, node.association,
                                               node.dims) if len(g) >= node.min_sources)
@@ -66,6 +78,29 @@ def test_fused_tracks_equal_fuse_on_their_groups(method, criterion):
         _check_against_fuse(node, reports, fused, method_args)
         sizes |= {len(g) for g in node.groups.values()}
     assert sizes == {1, 2, 3, 4}  # every group size was exercised
+
+
+@pytest.mark.parametrize("method", ["bci", "mbci", "naive", "fast-ci", "ifci", "ici", "ei"])
+def test_fused_estimates_pass_the_checks_at_extreme_scales(method):
+    """Covariances from 1e-150 to 1e150 and condition up to 1e10, symmetric only within
+    the Estimates' tolerance as reported: every fused step is what the checked Estimates
+    constructor makes of it (`_check_as_checked`)."""
+    rng = np.random.default_rng(12)
+    sources = ["a", "b"] if method in ("ici", "ei") else list(P_DETECT)
+    kw = dict(p_detect={s: P_DETECT[s] for s in sources}, growth=1.2) if method == "mbci" \
+        else {}
+    for scale in (1e-150, 1e-20, 1.0, 1e20, 1e150):
+        reports = _scene(rng, sources, n_targets=4, spacing=20.0 * np.sqrt(scale),
+                         noise=0.3 * np.sqrt(scale))
+        for s, r in reports.items():
+            Q = np.linalg.qr(rng.standard_normal((len(r), 4, 4)))[0]
+            eig = np.exp(rng.uniform(0, np.log(1e10), (len(r), 4)))
+            covs = scale * (Q * eig[:, None, :]) @ Q.transpose(0, 2, 1)
+            covs[:, 0, 1] *= 1 + 1e-12  # asymmetric within the tolerance
+            reports[s] = fo.Estimates(r.means, covs, r.ids)
+        node = fo.ProcessingNode(sources, method=method, threshold=3.0 * np.sqrt(scale), **kw)
+        _check_as_checked(node.step(reports))
+        assert max(len(g) for g in node.groups.values()) > 1  # something was fused
 
 
 @pytest.mark.parametrize("method", ["ci", "ici", "ei"])
