@@ -188,21 +188,17 @@ class ProcessingNode:
                 fid.append(f)
                 shared.append(count)
         age = [self._steps - self._tracks[f].step for f in fid]
-        distance = self._distances(means[group], fid).tolist()
-        ids = [-1] * len(groups)
+        distance = self._distances(means[group], fid)
+        ids = np.full(len(groups), -1, dtype=np.int64)
         taken = set()
-        # most shared pairs first, then the more recent, the nearer, by group, by id: a
-        # total order (a group meets a track once), np.lexsort's in a third of its time
-        for k in sorted(range(len(fid)), key=lambda k: (-shared[k], age[k], distance[k],
-                                                        group[k], fid[k])):
+        for k in np.lexsort((fid, group, distance, age, np.negative(shared))).tolist():
             if ids[group[k]] < 0 and fid[k] not in taken:
                 ids[group[k]] = fid[k]
                 taken.add(fid[k])
-        for i, f in enumerate(ids):
-            if f < 0:
-                ids[i] = self._next_id
-                self._next_id += 1
-        return np.array(ids, dtype=np.int64)
+        for i in np.flatnonzero(ids < 0):
+            ids[i] = self._next_id
+            self._next_id += 1
+        return ids
 
     def _distances(self, means: np.ndarray, fids: list[int]) -> np.ndarray:
         """Distances over dims from fused means (K, n) to the last means of fused tracks
