@@ -59,7 +59,6 @@ from .linalg import (
     cholesky,
     copy,
     gram,
-    householder,
     inline,
     jit,
     lower_inverse,
@@ -67,6 +66,7 @@ from .linalg import (
     matmul_t,
     node_mul,
     node_tmul,
+    qr,
     small_gram,
     small_mul,
     small_mul_t,
@@ -126,7 +126,7 @@ def factor(F, w, At, Vt, R, Ri):
                 for b in range(n):
                     At[b, rows + a] = r * F[i, a, b]
             rows += n
-    householder(At, n, rows, Vt, R)
+    qr(At, n, rows, Vt, R)
     for k in range(n):
         if not R[k, k] != 0.0 or not np.isfinite(R[k, k]):
             return rows, False

@@ -91,13 +91,13 @@ from .linalg import (
     cholesky,
     copy,
     fill,
-    householder,
     jit,
     lower_inverse,
     lower_solve,
     lower_t_solve,
     matmul,
     matmul_t,
+    qr,
     upper_inverse,
 )
 from .prepare import MAX_CONDITION, scaled
@@ -668,7 +668,7 @@ def _design(F, R, G, At, Zt, Vt, U, Ui, P):
     for a in range(N * n):
         for c in range(n):
             Zt[c, a] = At[c, a] = G[a, c]
-    householder(At, n, N * n, Vt, U)
+    qr(At, n, N * n, Vt, U)
     upper_inverse(U, Ui)
     for a in range(n):
         for c in range(n):

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .factored import work
-from .linalg import gram, householder, jit, matmul, upper_inverse
+from .linalg import gram, jit, matmul, qr, upper_inverse
 
 
 @jit
@@ -30,7 +30,7 @@ def conic_data(F, Ys, M):
             for r in range(n):
                 for c in range(n):
                     ws.At[c, i * n + r] = F[b, i, r, c] / np.sqrt(N)
-        householder(ws.At, n, N * n, ws.Vt, ws.R)
+        qr(ws.At, n, N * n, ws.Vt, ws.R)
         upper_inverse(ws.R, ws.Ri)  # Rb^-1
         for i in range(N):
             matmul(F[b, i], ws.Ri, ws.B)

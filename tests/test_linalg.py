@@ -114,6 +114,80 @@ def test_thin_qt_is_q_and_gives_the_bits_of_one_column_at_a_time(n, rows):
     assert np.abs(Qt.T @ R - A).max() <= 1e-14 * n * np.abs(A).max()
 
 
+def _padded(A, pad=3):
+    """A (rows, n) as At (n, rows + pad), C order, the last pad columns NaN: a buffer
+    wider than the matrix, as the work arrays are (LAPACK's leading dimension)."""
+    rows, n = A.shape
+    At = np.full((n, rows + pad), np.nan)
+    At[:, :rows] = A.T
+    return At
+
+
+@pytest.mark.parametrize("n,rows", [(3, 6), (16, 48), (17, 34), (40, 120), (150, 300)])
+def test_qr_is_householders_qr_through_lapack_above_small(n, rows):
+    """`qr` (LAPACK's dgeqrf above SMALL, its reflectors converted to unit ones) is a QR:
+    R upper with Q R = A for the Q its reflectors make, and R is householder's up to the
+    signs of its rows (to rounding; the same bits at n <= SMALL), a zero column included
+    (its reflector is 0, H = I)."""
+    rng = np.random.default_rng([127, n, rows])
+    A = rng.standard_normal((rows, n)) * np.exp(rng.uniform(-5, 5, n))
+    A[:, n // 2] = 0.0
+    At, Vt, R = _padded(A), np.zeros((n, rows + 3)), np.full((n, n), np.nan)
+    linalg.qr(At, n, rows, Vt, R)
+    Q = np.eye(rows)
+    for k in range(n):
+        Q = Q @ (np.eye(rows) - 2.0 * np.outer(Vt[k, :rows], Vt[k, :rows]))
+    assert np.abs(Q.T @ Q - np.eye(rows)).max() <= 1e-14 * n
+    assert np.abs(Q[:, :n] @ R - A).max() <= 1e-14 * n * np.abs(A).max()
+    np.testing.assert_array_equal(np.tril(R, -1), 0.0)
+    At2, Vt2, R2 = _padded(A), np.zeros((n, rows + 3)), np.empty((n, n))
+    linalg.householder(At2, n, rows, Vt2, R2)
+    signs = np.where(np.sign(np.diag(R)) == np.sign(np.diag(R2)), 1.0, -1.0)
+    if n <= linalg.SMALL:
+        np.testing.assert_array_equal(R, R2)
+    else:
+        assert np.abs(signs[:, None] * R - R2).max() <= 1e-14 * n * np.abs(A).max()
+
+
+@pytest.mark.parametrize("n,rows", [(3, 6), (17, 34), (40, 80), (150, 300)])
+def test_qr_thin_is_the_thin_q_and_r(n, rows):
+    """`qr_thin` leaves Q^T (n, rows) in At and R: Q^T Q = I, Q R = A; at n <= SMALL the
+    bits of householder then thin_qt, above it LAPACK's dgeqrf and dorgqr (whose R is
+    `qr`'s)."""
+    rng = np.random.default_rng([128, n, rows])
+    A = rng.standard_normal((rows, n))
+    At, Vt, R = _padded(A), np.zeros((n, rows + 3)), np.empty((n, n))
+    linalg.qr_thin(At, n, rows, Vt, R)
+    Qt = At[:, :rows]
+    assert np.abs(Qt @ Qt.T - np.eye(n)).max() <= 1e-14 * n
+    assert np.abs(Qt.T @ R - A).max() <= 1e-14 * n * np.abs(A).max()
+    At2, Vt2, R2 = _padded(A), np.zeros((n, rows + 3)), np.empty((n, n))
+    linalg.qr(At2, n, rows, Vt2, R2)
+    np.testing.assert_array_equal(R, R2)
+    if n <= linalg.SMALL:
+        linalg.thin_qt(Vt2, n, rows, At2)
+        np.testing.assert_array_equal(At[:, :rows], At2[:, :rows])
+
+
+@pytest.mark.parametrize("n", [3, 16, 17, 60, 200])
+def test_cholesky_is_numpys_and_refuses_what_is_not_positive_definite(n):
+    """`cholesky` (loops up to SMALL, LAPACK's dpotrf above): L lower with L L^T = A, to
+    rounding of numpy's factor; False for an indefinite matrix (a negative last pivot)
+    and one with an inf on its diagonal; L's upper triangle is zero."""
+    rng = np.random.default_rng([129, n])
+    G = rng.standard_normal((n, n))
+    A = G @ G.T + n * np.eye(n)
+    L = np.full((n, n), np.nan)
+    assert linalg.cholesky(A, L)
+    np.testing.assert_array_equal(np.triu(L, 1), 0.0)
+    assert np.abs(L - np.linalg.cholesky(A)).max() <= 1e-13 * np.sqrt(np.abs(A).max())
+    V = np.linalg.qr(G)[0]
+    assert not linalg.cholesky((V * np.r_[np.ones(n - 1), -1e-3]) @ V.T, np.empty((n, n)))
+    B = A.copy()
+    B[n - 1, n - 1] = np.inf
+    assert not linalg.cholesky(B, np.empty((n, n)))
+
+
 @pytest.mark.parametrize("n,rows", [(1, 3), (3, 17), (5, 17), (9, 40), (37, 37)])
 def test_householder_column_appends_the_columns_of_householder_bit_for_bit(n, rows):
     """Columns added one at a time (the NNLS of backends/newton.py keeps its QR so) give

@@ -31,11 +31,10 @@ from ..linalg import (
     SMALL,
     eigh,
     gram,
-    householder,
     inline,
     jit,
     matmul,
-    thin_qt,
+    qr_thin,
     upper_inverse,
 )
 
@@ -70,8 +69,7 @@ def diagonalise(F, trace: bool, At, Vt, R, Ri, P, B, X, S, U, lam, abc):
     for a in range(n):  # [F_a; F_b]^T in the first 2n columns of At
         for b in range(n):
             At[b, a], At[b, n + a] = F[0, a, b], F[1, a, b]
-    householder(At, n, 2 * n, Vt, R)
-    thin_qt(Vt, n, 2 * n, At)  # At now holds Q^T = [Q_a^T, Q_b^T]
+    qr_thin(At, n, 2 * n, Vt, R)  # At now holds Q^T = [Q_a^T, Q_b^T]
     if n > SMALL:  # through BLAS, from copies of Q_a and Q_b in Ri and P (free until below)
         _q_blocks(At, Ri, P)
         gram(Ri, S)
