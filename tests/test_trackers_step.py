@@ -36,6 +36,29 @@ def test_empty_scans_in_every_form_step_alike(kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_a_steps_estimates_are_what_the_checked_constructor_makes(kind):
+    """step() builds its Estimates without the constructor's checks, from the covariances
+    `_checks.step_estimates` checked and symmetrised (`_checks.report`): bit for bit what
+    the checked constructor makes of them, read-only, and not the tracker's own state (an
+    Estimates a step returned stays as it was after later steps)."""
+    f, rng = make(kind, name="n"), np.random.default_rng(11)
+    kept = []
+    for k in range(40):
+        scan = rng.normal([0.5, 0.5], 0.3, size=(int(rng.integers(0, 3)), 2))
+        e = f.step(scan, time=0.01 * (k + 1))
+        again = Estimates(e.means, e.covs, e.ids, e.time, e.node)
+        for name in ("means", "covs", "ids"):
+            np.testing.assert_array_equal(getattr(e, name), getattr(again, name))
+            assert getattr(e, name).dtype == getattr(again, name).dtype
+            assert not getattr(e, name).flags.writeable
+        kept.append((e, e.means.copy(), e.covs.copy(), e.ids.copy()))
+    assert any(len(e) for e, *_ in kept)
+    for e, means, covs, ids in kept:
+        for got, want in ((e.means, means), (e.covs, covs), (e.ids, ids)):
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_time_and_name_are_stamped(kind):
     f = make(kind, name="node 3")
     e = f.step([], time=0.5)

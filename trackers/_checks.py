@@ -14,7 +14,7 @@ import numpy as np
 
 from fusion_opt import FusionInputError
 from fusion_opt import validation as _fo
-from fusion_opt.estimates import check_exact_time, check_forward
+from fusion_opt.estimates import Estimates, check_exact_time, check_forward
 from fusion_opt.limits import fits  # noqa: F401 (the trackers call _checks.fits)
 
 
@@ -123,7 +123,7 @@ def read_only(a: np.ndarray) -> np.ndarray:
     return v
 
 
-def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -> None:
+def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -> np.ndarray:
     """Refuses a filter's step whose estimates, means (..., n) and covs (..., n, n), are not
     finite, or whose covariances an `Estimates` would refuse (`validation.check_spd`: not
     symmetric, not positive definite, or numerically singular), before the filter keeps its
@@ -131,18 +131,28 @@ def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -
     Estimates (fuzz K2: diag(1e-300, 1e300) passed numpy's Cholesky, the filter stepped,
     and only its report was refused). float64 cannot represent such a step: a measurement
     ``name`` far beyond the model's scale (a mixture's spread falls below the rounding of
-    its means), or a model and prior at float64's limits."""
+    its means), or a model and prior at float64's limits. Returns the covs symmetrised, a
+    new array (..., n, n), as an Estimates holds them (`report`)."""
     reason = "not finite"
     if np.isfinite(means).all() and np.isfinite(covs).all():
         try:
-            _fo.check_spd(covs.reshape(-1, *covs.shape[-2:]), "covs", item="estimate")
-            return
+            flat = covs.reshape(-1, *covs.shape[-2:])
+            return _fo.check_spd(flat, "covs", item="estimate").reshape(covs.shape)
         except FusionInputError as exc:
             reason = str(exc)
     raise FusionInputError(
         f"{name}: step {steps + 1}'s estimate cannot be represented in float64 ({reason}: a "
         "measurement far beyond the model's scale, or a model and prior at float64's "
         "limits); the filter's state is the one before this step")
+
+
+def report(means: np.ndarray, covs: np.ndarray, ids, time, node) -> Estimates:
+    """A step's Estimates, of new arrays the caller does not keep: means (m, n) and the covs
+    (m, n, n) `step_estimates` returned, ids (m,) int64 and unique (None: 0, ..., m - 1),
+    time from `step_time` and node from `node_name`: taken without the Estimates checks
+    again (`Estimates._of`; the covariance check was a tenth of an RBMCDA step)."""
+    ids = np.arange(len(means), dtype=np.int64) if ids is None else ids
+    return Estimates._of(means, covs, ids, time, node)
 
 
 def generator(name: str, value) -> np.random.Generator:

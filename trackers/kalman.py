@@ -228,20 +228,22 @@ class KalmanFilter:
         """Number of steps taken."""
         return self._steps
 
-    def _advance(self, scan: np.ndarray, name: str = "scan") -> None:
-        """One step on a checked scan (k, d); the state changes only if it succeeds."""
+    def _advance(self, scan: np.ndarray, name: str = "scan") -> np.ndarray:
+        """One step on a checked scan (k, d); the state changes only if it succeeds.
+        Returns the checked covariance (n, n) (`_checks.step_estimates`)."""
         with np.errstate(over="ignore", invalid="ignore"):  # refused just below
             m, P = filter_step(self._m, self._P, scan, self.model)
-        _checks.step_estimates(name, self._steps, m, P)
+        checked = _checks.step_estimates(name, self._steps, m, P)
         self._m, self._P = m, P
         self._steps += 1
+        return checked
 
     def step(self, scan, time=None) -> Estimates:
         """Predict, update with every measurement of ``scan`` (k, d), report (id 0)."""
         time = _checks.step_time(time, self._time)
-        self._advance(_checks.scan("scan", scan, self.model.d))
+        cov = self._advance(_checks.scan("scan", scan, self.model.d))
         self._time = self._time if time is None else time
-        return Estimates(self._m[None], self._P[None], None, time, self.name)
+        return _checks.report(self._m[None].copy(), cov[None], None, time, self.name)
 
 
 def run(scans: Sequence, model: LinearGaussian, m0, P0) -> FilterOutput:

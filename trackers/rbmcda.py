@@ -429,7 +429,8 @@ class RBMCDA:
         """One step on a checked scan (k, d); the state changes only if it succeeds."""
         with np.errstate(over="ignore", invalid="ignore"):  # refused just below
             state, last = filter_step(self._state, scan, self.params, self._rng)
-        _checks.step_estimates(name, self._state.k, last.means, last.covs)
+        last = last._replace(
+            covs=_checks.step_estimates(name, self._state.k, last.means, last.covs))
         self._state, self._last = state, last
         return last
 
@@ -439,7 +440,7 @@ class RBMCDA:
         time = _checks.step_time(time, self._time) if time is not None else self._clock()
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         self._time = time
-        return Estimates(r.means, r.covs, r.ids, time, self.name)
+        return _checks.report(r.means.copy(), r.covs, r.ids.copy(), time, self.name)
 
     def _clock(self) -> float:
         """The next step's clock time (k + 1) dt, stamped where no time is given; refused

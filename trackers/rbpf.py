@@ -223,7 +223,8 @@ class RBPF:
         """One step on a checked scan (k, d); the state changes only if it succeeds."""
         with np.errstate(over="ignore", invalid="ignore"):  # refused just below
             state, report = filter_step(self._state, scan, self.params, self._rng)
-        _checks.step_estimates(name, self._steps, report.mean, report.cov)
+        report = report._replace(
+            cov=_checks.step_estimates(name, self._steps, report.mean, report.cov))
         self._state = state
         self._steps += 1
         self._ess, self._resampled = report.ess, report.resampled
@@ -234,7 +235,7 @@ class RBPF:
         time = _checks.step_time(time, self._time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         self._time = self._time if time is None else time
-        return Estimates(r.mean[None], r.cov[None], None, time, self.name)
+        return _checks.report(r.mean[None].copy(), r.cov[None], None, time, self.name)
 
 
 def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Generator,
