@@ -290,6 +290,11 @@ _THREAD = threading.local()
 # compile at once, in separate processes (longest first); "fuse" links the kernels of
 # "solve" and "assemble" from their cache entries, so its stage starts after theirs, and
 # "rules", "conic" and "network" load most of their kernels from those entries too.
+# Tried on 2026-11-28 and slower: a second process compiling "rules" and "network" while
+# "solve" compiles, so that "assemble", after them, would load the 17 s of kernels it
+# shares with "solve" from the cache: cold, "rules" alone took 50-54 s (it shares most of
+# its kernels with "solve" too) and the paper study's parts 133 and 136 s against 125 and
+# 105 s for these stages, in turns on a busy machine.
 KERNEL_STAGES = (("solve", "assemble", "cross", "pairs"), ("rules", "fuse", "conic", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
