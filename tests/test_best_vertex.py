@@ -160,6 +160,78 @@ def test_a_vertex_certificate_holds_for_the_covariances_as_given(criterion):
     assert vertices > 60 and (trace or honest > 5)
 
 
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_vertex_gap_bounds_the_exact_certificate_at_every_vertex(criterion):
+    """`factored.vertex_gap` at every vertex e_j, optimal or not, of nodes of condition up
+    to 1e12 in random rotations scaled 10^-30..10^30 apart (where the bound of g_j - g_i
+    formed from D_i = P_j - P_i grows with eps cond(P_i), and that of its two terms apart,
+    tr(P_j Y_i P_j) - tr(P_j) or tr(Y_i P_j) - n, is taken where smaller), and of near
+    ties: never below the exact certificate (60-digit arithmetic), and within 1 % of it
+    where that is above 1e-8 of f(e_j)."""
+    trace = criterion == "trace"
+    rng = np.random.default_rng([117, len(criterion)])
+    checked, positive = 0, 0
+    for rep in range(24):
+        n, N = int(rng.integers(2, 7)), int(rng.integers(2, 4))
+        cond = 10.0 ** rng.uniform(0, 12)
+        if rep % 3:
+            Qs = [np.linalg.qr(rng.standard_normal((n, n)))[0] for _ in range(N)]
+            apart = 10.0 ** rng.uniform(-30, 30, N)
+        else:  # near ties
+            Qs = [np.linalg.qr(rng.standard_normal((n, n)))[0]] * N
+            apart = 1.0 + 10.0 ** rng.uniform(-12, -4, N)
+        covs = np.stack([(Q * np.logspace(0, np.log10(cond), n)) @ Q.T * s
+                         for Q, s in zip(Qs, apart, strict=True)])
+        covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+        a, q, E, _ = _prepared(np.zeros((1, N, n)), covs[None], None, trace)
+        ws = factored.work(N, n)
+        exact = Exact(covs)
+        for j in range(N):
+            e_j = np.eye(N)[j]
+            f, ok = factored.evaluate(a.F[0], e_j, ws, trace)
+            assert ok
+            factored.gradient(a.F[0], ws, trace)
+            bound = factored.vertex_gap(a.F[0], j, covs, q[0], E[0] + a.k[0], np.zeros(N),
+                                        ws.g, a.pnorm[0], trace)
+            certificate = max(bound, 0.0) / abs(f) if trace else max(bound, 0.0)
+            want = float(exact.at(e_j, trace)[1])
+            assert certificate >= want * (1 - 1e-9), (rep, j, certificate, want)
+            checked += 1
+            if want > 1e-8:
+                positive += 1
+                assert certificate <= want * 1.01, (rep, j, certificate, want)
+    assert checked > 50 and positive > 15
+
+
+@pytest.mark.parametrize("seed", [10, 20])
+def test_a_best_node_far_below_the_others_comes_back_optimal_at_n_64(seed):
+    """A fuzz's draws of 2026-11-28: n = 64, N = 5, condition 6.4e11 (log-uniform
+    eigenvalues in random rotations), node scales 1e55, three between, 1e-46: the last node
+    is the optimum (every slope tr(P_j Y_i P_j) - tr(P_j) from it is about -tr(P_j), as
+    numpy shows here with room to spare), and came back OPTIMAL_INACCURATE with
+    certificates of 0.093 and 0.66 from the bound of the difference formed from
+    D_i = P_j - P_i (then a Clarabel rescue of 150-200 s). Now OPTIMAL at e_4."""
+    rng = np.random.default_rng(10_000_000 + seed)
+    n, N, cond = 64, 5, 6.4e11
+    u = np.empty(N)
+    u[4], u[0] = -46.0, 55.0
+    u[1:4] = rng.uniform(-46.0, 55.0, size=3)
+    covs, means = np.empty((N, n, n)), np.empty((N, n))
+    for i in range(N):
+        Q, R = np.linalg.qr(rng.standard_normal((n, n)))
+        Q = Q * np.sign(np.diag(R))
+        P = (Q * np.exp(rng.uniform(0, np.log(cond), size=n))) @ Q.T
+        covs[i] = 0.5 * (P + P.T) * 10.0 ** u[i]
+        means[i] = rng.standard_normal(n) * np.sqrt(10.0 ** u[i])
+    Pj = covs[4] / 10.0 ** u[4]  # the best node, scaled to 1; the others relative to it
+    for i in range(4):
+        Yi = np.linalg.inv(covs[i] / 10.0 ** u[4])
+        assert np.trace(Pj @ Yi @ Pj) < 1e-3 * np.trace(Pj)  # the slope is about -tr(P_j)
+    r = fo.bci(means, covs, "trace")
+    assert r.status == fo.Status.OPTIMAL and r.weights.tolist() == [0, 0, 0, 0, 1]
+    assert r.gap <= 1e-10 * r.objective
+
+
 def test_mbci_nodes_alike_come_back_optimal_at_any_condition():
     """Identical MBCI nodes (scales of 0.3, 0.7: not 1), an input asymmetric by rounding
     too: the exact certificate is 0. Charged entry by entry, the rounding of the scaled
