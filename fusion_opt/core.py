@@ -79,9 +79,10 @@ OPTIMAL_RTOL = 1e-10
 # A native result not within OPTIMAL_RTOL is solved again by Clarabel (`_rescue`) up to
 # this state dimension. Clarabel's solve grows about as n^6 (one thread, 2026-11-28: 0.5 s
 # at n = 24, 2 s at 32, 15 s at 48, 72 s at 64) where the native one takes well under a
-# second: a fuzz's result at n = 64 whose certificate is held above the tolerance by its
-# rounding bound (a best node under condition 6.4e11, the others 1e100 times its scale)
-# took 150-200 s for the same weights and certificate again. Above it the native result
+# second: a fuzz's result at n = 64 whose certificate was held above the tolerance by its
+# rounding bound (a best node under condition 6.4e11, the others 1e100 times its scale;
+# certified since by `factored._formed_gap`'s second bound) took 150-200 s for the same
+# weights and certificate again. Above it the native result
 # stands, optimal_inaccurate with its certificate; backend="clarabel" is the conic solve.
 RESCUE_MAX_N = 32
 CI_METHODS = ("ci", "bci", "mbci")
