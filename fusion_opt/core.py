@@ -82,8 +82,8 @@ OPTIMAL_RTOL = 1e-10
 # second: a fuzz's result at n = 64 whose certificate was held above the tolerance by its
 # rounding bound (a best node under condition 6.4e11, the others 1e100 times its scale;
 # certified since by `factored._formed_gap`'s second bound) took 150-200 s for the same
-# weights and certificate again. Above it the native result
-# stands, optimal_inaccurate with its certificate; backend="clarabel" is the conic solve.
+# weights and certificate again. Above it the native result stands, optimal_inaccurate
+# with its certificate; backend="clarabel" is the conic solve.
 RESCUE_MAX_N = 32
 CI_METHODS = ("ci", "bci", "mbci")
 METHODS = (*CI_METHODS, *rules.RULES)

@@ -398,7 +398,7 @@ def _formed_gap(F, j, first, covs, q, shift, eta, g, pnorm, trace: bool, v: Veri
         _tmul(F[i], F[i], v.G)        # Y_i
         _absmul(Ci, F[i], v.Eb)       # |C_i| |F_i|, bounds |R_i| / (n eps)
         if trace:
-            matmul(v.G, Sj, v.V)      # Y_i P_j
+            matmul(v.G, Sj, v.V)      # Y_i P_j, also for `_product_bound`
             err = u * _inner_abs(D, v.V)                                   # D_i
         else:
             err = u * _inner_abs(D, v.G)                                   # D_i
@@ -431,9 +431,10 @@ def _scales_bound(t, own, eta, i: int, j: int, trace: bool) -> float:
 @inline
 def _product_bound(Fi, Ci, X, Sj, trace: bool, v: Verify):
     """(t, err): t = tr(Y_i X P_j) ("trace") or tr(Y_i X) ("logdet") from node i's factor
-    F_i (Y_i = F_i^T F_i in v.G, |C_i| |F_i| in v.Eb) for an X (n, n) taken as exact, and a
-    first-order bound on its error from F_i's (E_i, R_i: `vertex_gap`'s docstring) and the
-    products' rounding, not doubled. Overwrites v.H, v.K, v.T and v.V."""
+    F_i (Y_i = F_i^T F_i in v.G, |C_i| |F_i| in v.Eb, and for "trace" Y_i P_j in v.V) for
+    an X (n, n) taken as exact, and a first-order bound on its error from F_i's (E_i, R_i:
+    `vertex_gap`'s docstring) and the products' rounding, not doubled. Overwrites v.H,
+    v.K, v.T and v.U."""
     n = Fi.shape[0]
     u = _EPS
     matmul(v.G, X, v.H)           # Y_i X
@@ -442,12 +443,11 @@ def _product_bound(Fi, Ci, X, Sj, trace: bool, v: Verify):
         t = np.trace(v.K)
         matmul(v.K, v.G, v.T)     # Y_i X P_j Y_i
         err = (n + 3) * u * _inner_abs_cct(Ci, _abs_into(v.T))       # E_i
-        matmul(v.G, Sj, v.V)      # Y_i P_j
         matmul(v.V, X, v.T)       # Y_i P_j X
         err += n * u * (_inner_abs(v.Eb, v.K) + _inner_abs(v.Eb, v.T))  # R_i
         _absmul(Fi, X, v.T)
-        _absmul(v.T, Sj, v.V)
-        err += (n * n + 3 * n) * u * _inner_abs(v.V, Fi)             # products
+        _absmul(v.T, Sj, v.U)
+        err += (n * n + 3 * n) * u * _inner_abs(v.U, Fi)             # products
         return t, err
     t = np.trace(v.H)
     matmul(v.H, v.G, v.T)         # Y_i X Y_i

@@ -147,7 +147,7 @@ def step_estimates(name: str, steps: int, means: np.ndarray, covs: np.ndarray) -
 
 
 def report(means: np.ndarray, covs: np.ndarray, ids, time, node) -> Estimates:
-    """A step's Estimates, of new arrays the caller does not keep: means (m, n) and the covs
+    """A step's Estimates, of new arrays nothing writes to again: means (m, n) and the covs
     (m, n, n) `step_estimates` returned, ids (m,) int64 and unique (None: 0, ..., m - 1),
     time from `step_time` and node from `node_name`: taken without the Estimates checks
     again (`Estimates._of`; the covariance check was a tenth of an RBMCDA step)."""

@@ -440,7 +440,7 @@ class RBMCDA:
         time = _checks.step_time(time, self._time) if time is not None else self._clock()
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         self._time = time
-        return _checks.report(r.means.copy(), r.covs, r.ids.copy(), time, self.name)
+        return _checks.report(r.means, r.covs, r.ids, time, self.name)
 
     def _clock(self) -> float:
         """The next step's clock time (k + 1) dt, stamped where no time is given; refused

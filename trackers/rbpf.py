@@ -235,7 +235,7 @@ class RBPF:
         time = _checks.step_time(time, self._time)
         r = self._advance(_checks.scan("scan", scan, self.params.model.d))
         self._time = self._time if time is None else time
-        return _checks.report(r.mean[None].copy(), r.cov[None], None, time, self.name)
+        return _checks.report(r.mean[None], r.cov[None], None, time, self.name)
 
 
 def run(scans: Sequence, model: LinearGaussian, m0, P0, *, rng: np.random.Generator,
