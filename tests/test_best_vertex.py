@@ -168,11 +168,33 @@ def test_vertex_gap_bounds_the_exact_certificate_at_every_vertex(criterion):
     tr(P_j Y_i P_j) - tr(P_j) or tr(Y_i P_j) - n, is taken where smaller), and of near
     ties: never below the exact certificate (60-digit arithmetic), and within 1 % of it
     where that is above 1e-8 of f(e_j)."""
-    trace = criterion == "trace"
     rng = np.random.default_rng([117, len(criterion)])
-    checked, positive = 0, 0
-    for rep in range(24):
-        n, N = int(rng.integers(2, 7)), int(rng.integers(2, 4))
+    checked, positive, _ = _vertex_bounds(rng, criterion, 24, lambda: int(rng.integers(2, 7)),
+                                          lambda: int(rng.integers(2, 4)), 1.01)
+    assert checked > 50 and positive > 15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("n", [12, 24])
+def test_vertex_gap_bounds_the_exact_certificate_at_larger_n(criterion, n):
+    """The same draws at n = 12 and 24, N of 2, 3 or 5: never below the exact certificate.
+    Its excess over it grows with n where nodes nearly tie at condition ~1e12 (a campaign
+    of 2026-11-29 over 3,960 vertices at n = 8 to 48 found no vertex below, and at most
+    1.09x above at n <= 32, 1.31x at n = 48, all on near ties), so here within 1.25x."""
+    rng = np.random.default_rng([118, n, len(criterion)])
+    checked, positive, worst = _vertex_bounds(rng, criterion, 9, lambda: n,
+                                              lambda: int(rng.choice([2, 3, 5])), 1.25)
+    assert checked >= 18 and positive > 5, (checked, positive, worst)
+
+
+def _vertex_bounds(rng, criterion, reps, draw_n, draw_N, ratio_limit):
+    """The checks of the two tests above over `reps` draws; returns the vertices checked,
+    those with an exact certificate above 1e-8 and the largest ratio of bound to exact."""
+    trace = criterion == "trace"
+    checked, positive, worst = 0, 0, 0.0
+    for rep in range(reps):
+        n, N = draw_n(), draw_N()
         cond = 10.0 ** rng.uniform(0, 12)
         if rep % 3:
             Qs = [np.linalg.qr(rng.standard_normal((n, n)))[0] for _ in range(N)]
@@ -199,8 +221,9 @@ def test_vertex_gap_bounds_the_exact_certificate_at_every_vertex(criterion):
             checked += 1
             if want > 1e-8:
                 positive += 1
-                assert certificate <= want * 1.01, (rep, j, certificate, want)
-    assert checked > 50 and positive > 15
+                worst = max(worst, certificate / want)
+                assert certificate <= want * ratio_limit, (rep, j, certificate, want)
+    return checked, positive, worst
 
 
 @pytest.mark.parametrize("seed", [10, 20])
