@@ -24,7 +24,8 @@ the CLI sets OPENBLAS_NUM_THREADS=1) per call, with the garbage collector held o
 repeat_budget_ms. The first call of each shape (n, N, criterion) is reported apart
 (first_ms: it builds CVXPY's program for "clarabel" and "scs", and Clarabel's template for
 "clarabel-direct"; the compiled kernels are loaded before anything is timed, in
-kernel_load_s of machine.json). solver_own_median_ms is the time the solver itself reports
+kernel_load_s of machine.json, beside the machine's pace at the start and end of the
+measurement, `_pace`). solver_own_median_ms is the time the solver itself reports
 (Clarabel's, SCS's) in the same calls and overhead_median_ms the rest of each call.
 
 Accuracy is computed outside the solvers, on the weights w each returned, never from what
@@ -207,13 +208,16 @@ def run(config: dict, out_dir: Path, *, quick: bool, progress: bool) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     load = _load_kernels(config)
+    pace = {"start": _pace()}
     rows, instances = _measure(config, progress)
+    pace["end"] = _pace()
     _write_csv(out_dir / "backends.csv", COLUMNS, rows)
     _write_csv(out_dir / "backends_instances.csv", INSTANCE_COLUMNS, instances)
     info = {"versions": meta.versions(), "machine": meta.machine(),
             "git_commit": meta.git_commit(), "numpy_config": _blas(),
             "python": platform.python_implementation(), "quick": quick,
             "kernel_load_s": load, "measure_wall_time_s": time.perf_counter() - t0,
+            "pace_us": pace,
             "config": config}
     (out_dir / "machine.json").write_text(json.dumps(info, indent=2, default=str))
     report(config, out_dir, quick=quick)
@@ -224,6 +228,31 @@ def _blas() -> str:
 
     cfg = numpy.show_config(mode="dicts")["Build Dependencies"]
     return f"{cfg['blas'].get('name')} {cfg['blas'].get('version')}"
+
+
+def _pace() -> dict:
+    """The machine's pace now: CPU microseconds per call (least of 5 rounds) of a fixed
+    pure-Python loop and of np.linalg.inv on one 4 x 4 matrix, so that runs made in
+    different hours can be compared (the same code's calls took 2-5 times longer in some
+    hours than in others, Python more so than compiled code)."""
+    def python_loop():
+        total = 0
+        for i in range(1000):
+            total += i * i
+        return total
+
+    A = np.eye(4) + 0.1
+    calls = {"python_loop": (python_loop, 200), "numpy_inv_4x4": (lambda: np.linalg.inv(A), 2000)}
+    pace = {}
+    for name, (call, k) in calls.items():
+        best = np.inf
+        for _ in range(5):
+            t0 = time.process_time()
+            for _ in range(k):
+                call()
+            best = min(best, (time.process_time() - t0) / k * 1e6)
+        pace[name] = best
+    return pace
 
 
 def _load_kernels(config) -> float:

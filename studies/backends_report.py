@@ -30,7 +30,7 @@ def report(config: dict, out_dir: Path, *, quick: bool) -> None:
     out_dir = Path(out_dir)
     rows = _read_csv(out_dir / "backends.csv")
     instances = _read_csv(out_dir / "backends_instances.csv")
-    sections = _sections(rows, instances, config, quick, _kernel_load(out_dir))
+    sections = _sections(rows, instances, config, quick, *_run_info(out_dir))
     lines = []
     for part in sections:
         if isinstance(part, _Table):
@@ -71,12 +71,28 @@ def _number(text: str):
     return text
 
 
-def _kernel_load(out_dir: Path) -> float:
-    """kernel_load_s of the run's machine.json (NaN if there is none)."""
+def _run_info(out_dir: Path) -> tuple[float, str]:
+    """kernel_load_s of the run's machine.json (NaN if there is none) and a sentence on the
+    machine's pace at the start and end of the measurement ("" in a run before it was
+    measured, or if machine.json does not hold it whole)."""
     try:
-        return float(json.loads((out_dir / "machine.json").read_text())["kernel_load_s"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return np.nan
+        info = json.loads((out_dir / "machine.json").read_text())
+    except (OSError, ValueError):
+        return np.nan, ""
+    try:
+        load = float(info["kernel_load_s"])
+    except (KeyError, TypeError, ValueError):
+        load = np.nan
+    try:
+        p = {(when, what): float(info["pace_us"][when][what]) for when in ("start", "end")
+             for what in ("python_loop", "numpy_inv_4x4")}
+    except (KeyError, TypeError, ValueError):
+        return load, ""
+    return load, (" The machine's pace, to compare runs made in different hours (CPU time "
+                  "per call, least of 5 rounds, at the start / end of the measurement): "
+                  f"a fixed pure-Python loop {p['start', 'python_loop']:.3g} / "
+                  f"{p['end', 'python_loop']:.3g} us, np.linalg.inv of a 4 x 4 "
+                  f"{p['start', 'numpy_inv_4x4']:.3g} / {p['end', 'numpy_inv_4x4']:.3g} us.")
 
 
 # ----------------------------------------------------------------- profile, targets
@@ -268,7 +284,7 @@ class _Table:
                 *("| " + " | ".join(map(str, row)) + " |" for row in self.rows)]
 
 
-def _sections(rows, instances, config, quick, kernel_load) -> list:
+def _sections(rows, instances, config, quick, kernel_load, pace) -> list:
     """backends.md as a list of text blocks (lists of lines) and _Tables."""
     single = [r for r in rows if r["mode"] == "single"]
     grid = len({_problem(r) for r in instances if r["mode"] == "single"})
@@ -283,7 +299,7 @@ def _sections(rows, instances, config, quick, kernel_load) -> list:
          f"solver, fewer (at least one) beyond {config['repeat_budget_ms']:g} ms. Times "
          "are CPU time (time.process_time, one BLAS thread). Everything below was measured "
          "by this run (studies/backends.py says how); the compiled kernels loaded in "
-         f"{kernel_load:.3g} s before timing.", "", "## Targets (issue 11)", ""],
+         f"{kernel_load:.3g} s before timing.{pace}", "", "## Targets (issue 11)", ""],
         _Table("targets", ["target", "measured", "verdict"], targets(rows, instances)),
         ["", "## Time per fusion, the user's call (ms)", "",
          "fo.bci per backend and each peer; median over the problems and calls of a cell, "

@@ -5,6 +5,7 @@ table follow from hand-made tables."""
 
 import csv
 import itertools
+import json
 import re
 
 import numpy as np
@@ -98,6 +99,20 @@ def test_backends_study_writes_outputs(tmp_path):
     backends.report(c, tmp_path, quick=True)
     assert (tmp_path / "backends.md").read_text() == text
     assert (tmp_path / "backends_targets.csv").read_text() == targets
+    # the machine's pace at the start and end, stored and stated; a run stored before it
+    # was measured (or whose machine.json lost it) is reported without it
+    info = json.loads((tmp_path / "machine.json").read_text())
+    pace = info["pace_us"]
+    assert all(0 < pace[w][k] < 1e4 for w in ("start", "end")
+               for k in ("python_loop", "numpy_inv_4x4"))
+    stated = re.search(r"a fixed pure-Python loop (\S+) / (\S+) us", text)
+    assert stated and float(stated[1]) == float(f"{pace['start']['python_loop']:.3g}")
+    for damaged in ({k: v for k, v in info.items() if k != "pace_us"},
+                    {**info, "pace_us": {"start": pace["start"]}}):
+        (tmp_path / "machine.json").write_text(json.dumps(damaged))
+        backends.report(c, tmp_path, quick=True)
+        assert (tmp_path / "backends.md").read_text() == text.replace(
+            text[text.index(" The machine's pace"):text.index(" us.\n") + 4], "")
 
 
 def _vertex(Ys, M, criterion):
