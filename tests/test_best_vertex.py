@@ -133,7 +133,7 @@ def test_a_vertex_certificate_holds_for_the_covariances_as_given(criterion):
     up to 1e11): from the factors the certificate at the returned node was 0 while the
     node was 4e-7 nats worse than the other at condition 1e10 ("logdet", fuzz Q1), as the
     Cholesky's backward error moves a log det by more than that. The certificate now
-    bounds the exact one (60-digit arithmetic) at every vertex result, is within 1e-3 of
+    bounds the exact one (80-digit arithmetic) at every vertex result, is within 1e-3 of
     it where that is above the tolerance, and a result is OPTIMAL only where the exact
     certificate is within the tolerance."""
     trace = criterion == "trace"
@@ -166,7 +166,7 @@ def test_vertex_gap_bounds_the_exact_certificate_at_every_vertex(criterion):
     to 1e12 in random rotations scaled 10^-30..10^30 apart (where the bound of g_j - g_i
     formed from D_i = P_j - P_i grows with eps cond(P_i), and that of its two terms apart,
     tr(P_j Y_i P_j) - tr(P_j) or tr(Y_i P_j) - n, is taken where smaller), and of near
-    ties: never below the exact certificate (60-digit arithmetic), and within 1 % of it
+    ties: never below the exact certificate (80-digit arithmetic), and within 1 % of it
     where that is above 1e-8 of f(e_j)."""
     rng = np.random.default_rng([117, len(criterion)])
     checked, positive, _ = _vertex_bounds(rng, criterion, 24, lambda: int(rng.integers(2, 7)),
