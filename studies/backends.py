@@ -231,7 +231,7 @@ def _blas() -> str:
 
 
 def _pace() -> dict:
-    """The machine's pace now: CPU microseconds per call (least of 5 rounds) of a fixed
+    """The machine's pace now: CPU microseconds per call (least of 5 rounds, `_timed`) of a fixed
     pure-Python loop and of np.linalg.inv on one 4 x 4 matrix, so that runs made in
     different hours can be compared (the same code's calls took 2-5 times longer in some
     hours than in others, Python more so than compiled code)."""
@@ -243,16 +243,8 @@ def _pace() -> dict:
 
     A = np.eye(4) + 0.1
     calls = {"python_loop": (python_loop, 200), "numpy_inv_4x4": (lambda: np.linalg.inv(A), 2000)}
-    pace = {}
-    for name, (call, k) in calls.items():
-        best = np.inf
-        for _ in range(5):
-            t0 = time.process_time()
-            for _ in range(k):
-                call()
-            best = min(best, (time.process_time() - t0) / k * 1e6)
-        pace[name] = best
-    return pace
+    return {name: min(_timed(_repeat, call, k)[0] for _ in range(5)) / k * 1e6
+            for name, (call, k) in calls.items()}
 
 
 def _load_kernels(config) -> float:
@@ -474,8 +466,8 @@ def _part_times(means, covs, crit) -> list[float]:
     return times
 
 
-def _repeat(call) -> None:
-    for _ in range(PART_CALLS):
+def _repeat(call, times: int = PART_CALLS) -> None:
+    for _ in range(times):
         call()
 
 
