@@ -48,13 +48,13 @@ package keep their state when they refuse a scan, so the failing one has not ste
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Hashable, Iterable, Mapping, Sequence
+from collections.abc import Hashable, Iterable, Mapping, Sequence, Set
 from typing import Any, Protocol
 
 from .estimates import Estimates, check_forward, check_time
 from .processing import ProcessingNode
 from .results import FusionInputError, FusionSolverError, in_context
-from .validation import hashable, safe_repr
+from .validation import hashable, is_sequence, safe_repr
 
 
 class Tracker(Protocol):
@@ -111,8 +111,9 @@ class Network:
         return out
 
     def _check_lost(self, lost, scans) -> frozenset:
-        """lost: names of trackers with a scan at this step (a lost link's tracker steps)."""
-        if isinstance(lost, str | bytes | Mapping) or not isinstance(lost, Iterable):
+        """lost: names of trackers with a scan at this step (a lost link's tracker steps), in
+        any order: a sequence or a set."""
+        if not (is_sequence(lost) or isinstance(lost, Set)):
             raise FusionInputError(f"lost must be a collection of tracker names, got "
                                    f"{safe_repr(lost)}")
         lost = list(lost)
@@ -152,8 +153,9 @@ def _processing_step(name, node, reports, time) -> Estimates:
 
 
 def _sequence(value, name: str) -> list:
-    """value (an iterable, not a string or mapping) as a list."""
-    if isinstance(value, str | bytes | Mapping) or not isinstance(value, Iterable):
+    """value as a list: an iterable in step order (`validation.is_sequence`: not a string,
+    a mapping, a set, whose order changes with the hash seed, or a 0-d array)."""
+    if not is_sequence(value):
         raise FusionInputError(f"{name} must be a sequence (one entry per step), got "
                                f"{type(value).__name__}")
     return list(value)

@@ -257,6 +257,13 @@ def test_a_failing_step_names_its_tracker_and_what_had_stepped():
         net.run([{"a": []}], times=5)
     with pytest.raises(fo.FusionInputError, match="scan_series must be a sequence"):
         net.run(None)
+    # a 0-d array has __iter__ but raises TypeError when iterated, and a set's order (which
+    # numbers the steps) changes with the hash seed (fuzz of 2026-11-29)
+    for times in (np.array(0.0), {1.0, 2.0}):
+        with pytest.raises(fo.FusionInputError, match="times must be a sequence"):
+            net.run([{"a": []}, {"a": []}], times=times)
+    with pytest.raises(fo.FusionInputError, match="scan_series must be a sequence"):
+        net.run(np.array(1.0))
     assert len(net.run([{"a": []}], times=(t for t in [1.0]))["f"]) == 1
 
 
@@ -315,9 +322,10 @@ def test_a_lost_link_keeps_a_clocked_tracker_in_time_where_a_missing_scan_does_n
             left_out.step(scans(k))
     with pytest.raises(fo.FusionInputError, match=r"reports carry different times"):
         left_out.step(scans(3))
-    for bad in (["c"], "b", [["b"]]):
+    for bad in (["c"], "b", [["b"]], np.array("b")):  # a 0-d array: fuzz of 2026-11-29
         with pytest.raises(fo.FusionInputError, match="lost"):
             lost.step({"a": []}, lost=bad)
+    assert "b" not in lost.step(scans(5), lost={"b"})  # a set names them as well as a list
 
 
 def test_a_chain_of_1200_processing_nodes_is_ordered_and_steps():
