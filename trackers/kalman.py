@@ -20,6 +20,11 @@ scenario configurations refuse a prior beyond that (scenarios._check_prior_ratio
 
 The step functions take means (..., n) and covariances (..., n, n) with any leading batch
 axes (e.g. one per particle), so a particle filter calls them once for all particles.
+They are the unchecked numerical core, as in dynamax: they trust their inputs (finite,
+shapes that match, S positive definite), which the filters check once per step at their
+entry (``KalmanFilter``, ``run``, ``rbpf.RBPF``, ``rbmcda.RBMCDA``) and whose results they
+check before keeping them; called directly, a NaN measurement gives a NaN mean and a
+singular S numpy's LinAlgError. Data from outside goes through a filter.
 
 N filters of one target with a common model (nodes i = 1..N, each with its own measurement
 y_i = H x + r_i, the r_i independent) have errors e_i = x - m_i that are correlated through
