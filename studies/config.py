@@ -123,11 +123,17 @@ def _known_in(over: dict, defaults: dict, named: frozenset, where: str, path) ->
             _known_in(value, defaults[key], named, at, path)
 
 
+SEED_FIELDS = ("seed", "quick.seed")
+
+
 def _wide_ints_as_floats(value, where: str):
     """value with every integer beyond int64 (TOML has no bound) as a float: numpy took
     2^70 as an object and a study's run ended in a TypeError traceback (fuzz N7). A field
     that must be an integer then refuses the float by name; one past float64's range is
-    refused here."""
+    refused here. Not the seed (SEED_FIELDS), which SeedSequence takes at any size, as
+    --seed does (a 128-bit SeedSequence().entropy is numpy's advice for a fresh seed)."""
+    if where in SEED_FIELDS:
+        return value
     if isinstance(value, dict):
         return {k: _wide_ints_as_floats(v, f"{where}.{k}" if where else k)
                 for k, v in value.items()}
@@ -276,7 +282,7 @@ INTERVAL_RUNS = "a 95% interval needs two or more runs"
 
 def run_fields(config: dict) -> None:
     """runs an integer in [2, MAX_RUNS] (every Monte Carlo study reports 95% intervals
-    over its runs), seed a non-negative integer."""
+    over its runs), seed a non-negative integer of any size."""
     integer("runs", config.get("runs"), low=2, high=MAX_RUNS, why=INTERVAL_RUNS)
     integer("seed", config.get("seed"), low=0)
 

@@ -271,6 +271,22 @@ def test_integers_past_int64_in_a_config_file_are_floats_or_refused_by_field(tmp
     assert "metrics.cutoff = 10000000... (401 digits) is beyond float64's range" in err
 
 
+def test_a_seed_past_int64_in_a_config_file_is_the_integer_as_from_the_command_line(
+        tmp_path):
+    """Fuzz of 2026-11-29 (F3): seed = 10^29 in a --config file became the float 1e+29 and
+    was refused ("seed must be an integer"), while --seed 10^29 ran: a run could not be
+    reproduced from a file. SeedSequence takes a seed of any size (numpy's advice for a
+    fresh one is SeedSequence().entropy, 128 bits), so the file's seed stays the integer."""
+    seed = 2**127 + 12345
+    path = tmp_path / "seed.toml"
+    path.write_text(f"seed = {seed}\n[quick]\nseed = {seed + 1}\n")
+    for quick in (False, True):
+        config = configs.load("table1", quick=quick, path=path)
+        assert config["seed"] == seed + quick and type(config["seed"]) is int
+        _module("table1").check(config)
+    assert runner.seed_of(seed, 3).entropy == seed  # the runner's streams take it as it is
+
+
 def test_a_config_check_runs_no_more_steps_than_its_study(tmp_path):
     """Fuzz N9: nnode's check ran the dynamic model over dynamic.steps = 10^7 before the
     memory limit could refuse them (minutes, gigabytes), and stonesoup's predicted a track
