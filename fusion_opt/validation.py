@@ -192,16 +192,20 @@ def _unshowable(value, exc: Exception) -> str:
 
 
 def short_repr(value) -> str:
-    """repr(value), or its first 8 characters and its length where it is longer than 24 (an
-    int of 400 digits, named in a one-line refusal); an int past Python's 4,300 digits of
-    repr by its size alone (its repr raised ValueError inside the refusal: fuzz O3)."""
+    """repr(value); of an int longer than 24 characters its first 8 and its length (an int
+    of 400 digits, named in a one-line refusal); an int past Python's 4,300 digits of repr
+    by its size alone (its repr raised ValueError inside the refusal: fuzz O3); any other
+    value's repr whole up to 200 characters (a datetime's 38 were shown as "datetime...
+    (38 digits)": fuzz of 2026-11-29, F4), else its first 100 and its length."""
     if isinstance(value, int) and value.bit_length() > 14_000:
         return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
     try:
         text = repr(value)
     except Exception as exc:  # noqa: BLE001 (an int past 4,300 digits inside it, ...)
         return _unshowable(value, exc)
-    return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
+    if isinstance(value, int):
+        return text if len(text) <= 24 else f"{text[:8]}... ({len(text)} digits)"
+    return text if len(text) <= 200 else f"{text[:100]}... ({len(text)} characters)"
 
 
 def _contains_bool(value) -> bool:

@@ -221,6 +221,12 @@ def test_float16_ids_and_long_times_are_refused_or_kept_without_warnings():
         with pytest.raises(fo.FusionInputError) as info:
             fo.Estimates(*one, None, -10**1000, "n")
     assert len(str(info.value)) < 300 and "(1002 digits)" in str(info.value)
+    # a value that is not an int is shown whole, not cut and called digits (fuzz of
+    # 2026-11-29: "datetime... (38 digits)")
+    with pytest.raises(fo.FusionInputError) as info:
+        fo.Estimates(*one, time=np.datetime64("2026-01-01T00:00:01"))
+    assert "got datetime.datetime(2026, 1, 1, 0, 0, 1)" in str(info.value)
+    assert "digits" not in str(info.value)
 
 
 def test_a_whole_time_beyond_2_53_of_another_type_that_float64_rounds_is_refused():
