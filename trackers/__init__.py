@@ -6,8 +6,8 @@ function, and ``run(scans, ...)`` loops over the steps. The filters check every 
 and result; the pure step functions (``kalman.predict``, ``update``, ...) are their
 unchecked numerical core, for callers that checked their data (``kalman``'s docstring).
 Data flows one way: these produce estimates; ``fusion_opt`` fuses them; ``studies``
-drives both. Trackers use fusion_opt's
-``Estimates``, ``FusionInputError`` and input checks, and nothing of ``studies``.
+drives both. Trackers use fusion_opt's ``Estimates``, ``FusionInputError`` and input
+checks, and nothing of ``studies``.
 """
 
 from trackers import kalman, metrics, models, rbmcda, rbpf, resampling, scenarios
