@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .limits import estimates_bytes, fits
-from .results import FusionInputError
+from .results import FusionInputError, ReadOnly
 from .validation import (
     check_spd,
     finite_array,
@@ -37,7 +37,7 @@ from .validation import (
 
 
 @dataclass(frozen=True, eq=False)
-class Estimates:
+class Estimates(ReadOnly):
     """m estimates: means (m, n), covs (m, n, n), ids (m,) int64, time (float or None),
     node (any hashable, or None). `len(e)` is m; `e.n` the state dimension."""
 

@@ -92,6 +92,18 @@ WEIGHTS_ARE = {
 }
 
 
+class ReadOnly:
+    """A frozen holder of read-only arrays that stays read-only when pickled, copied or
+    deep-copied: numpy gives an unpickled or deep-copied array back writeable, and a
+    copied result's covariance could be written in place (fuzz of 2026-11-29)."""
+
+    def __setstate__(self, state: dict) -> None:
+        for value in state.values():
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+        self.__dict__.update(state)
+
+
 def _frozen(a, dtype=np.float64) -> np.ndarray:
     """A read-only copy (results own their arrays)."""
     a = a.copy() if type(a) is np.ndarray and a.dtype == dtype else np.array(a, dtype=dtype)
@@ -99,8 +111,8 @@ def _frozen(a, dtype=np.float64) -> np.ndarray:
     return a
 
 
-@dataclass(frozen=True, repr=False)
-class FusionResult:
+@dataclass(frozen=True, repr=False, eq=False)
+class FusionResult(ReadOnly):
     """One fused estimate.
 
     weights (N,): the CI weights on the simplex, or for the rules without them (naive,
@@ -118,7 +130,8 @@ class FusionResult:
     and by up to about n^2 eps cond(P_i) nats for "logdet";
     status a `Status`; backend the weight solver; solve_time the wall time of the weight
     solve in seconds (solver and polish); iterations the solver's, polish_iterations those
-    of the Newton polish.
+    of the Newton polish. Its arrays are read-only, in pickled and copied results too; == is
+    identity, as for an Estimates (compare the fields, e.g. np.array_equal(a.cov, b.cov)).
     """
 
     weights: np.ndarray
@@ -168,11 +181,12 @@ class FusionResult:
                     f"  mean={self.mean},\n  cov={_indent(self.cov)})")
 
 
-@dataclass(frozen=True, repr=False)
-class BatchFusionResult:
+@dataclass(frozen=True, repr=False, eq=False)
+class BatchFusionResult(ReadOnly):
     """B fused estimates as arrays: weights (B, N) (as `weights_are` says, see
     FusionResult), mean (B, n), cov (B, n, n), objective (B,), gap (B,), status (B,) of
-    `Status`, iterations (B,) int; solve_time is the wall time of the whole batch (s)."""
+    `Status`, iterations (B,) int; solve_time is the wall time of the whole batch (s).
+    Read-only and compared by identity, as a FusionResult."""
 
     weights: np.ndarray
     mean: np.ndarray

@@ -110,6 +110,29 @@ def test_solver_error_survives_pickling():
         "ei", "method", "method 'ei' failed with status 'numerical_error'")
 
 
+def test_results_and_estimates_stay_read_only_when_pickled_or_copied_and_compare_by_identity():
+    """Fuzz of 2026-11-29: numpy gives an unpickled or deep-copied array back writeable, so a
+    pickled result's cov could be written in place (a frozen result with a non-PD
+    covariance); and the dataclasses' generated == compared arrays, which raised numpy's
+    "truth value of an array is ambiguous" for two results of one fusion."""
+    import copy
+    import pickle
+
+    objects = (fo.bci(MEANS, COVS), fo.fuse_batch(MEANS[None], COVS[None]),
+               fo.Estimates(MEANS, COVS, None, 1.0, "a"))
+    for obj in objects:
+        for made in (pickle.loads(pickle.dumps(obj)), copy.copy(obj), copy.deepcopy(obj)):
+            assert type(made) is type(obj)
+            arrays = {k: v for k, v in vars(obj).items() if isinstance(v, np.ndarray)}
+            assert len(arrays) >= 3
+            for name, value in arrays.items():
+                got = getattr(made, name)
+                assert not got.flags.writeable, (type(obj).__name__, name)
+                assert np.array_equal(got, value) and got.dtype == value.dtype
+            assert made != obj and made == made and hash(made) != hash(obj)
+            assert obj in [made, obj] and made not in [obj]
+
+
 _I = np.eye(2)
 
 
