@@ -149,8 +149,9 @@ class TrackIds:
         self._next = max(self._next, int_id + 1)
 
     def __contains__(self, track_id: Hashable) -> bool:
-        """Whether Stone Soup id `track_id` is bound."""
-        return track_id in self._to_int
+        """Whether Stone Soup id `track_id` is bound (an unhashable one never is: `int_id`
+        refuses it by name, where a dict lookup raised TypeError: fuzz of 2026-11-29)."""
+        return hashable(track_id) and track_id in self._to_int
 
     def __len__(self) -> int:
         return len(self._to_int)

@@ -527,6 +527,8 @@ def _gaussian(mean, t=T0):
      "must be Stone Soup Tracks, got \\['GaussianState'\\]"),
     (lambda: fs.StoneSoupTracker([T0], ndim=2).step(), "must be \\(time, tracks\\) pairs"),
     (lambda: fs.to_estimates([Track([_gaussian([1.0, 2.0])], id=["x"])]), "must be hashable"),
+    (lambda: fs.StoneSoupTracker([(T0, [Track([_gaussian([1.0, 2.0])], id=["x"])])],
+                                 ndim=2).step(), "must be hashable"),  # fuzz of 2026-11-29
     (lambda: fs.to_estimates([Track([_gaussian([1.0, 2.0])])], track_ids={}),
      "track_ids must be a TrackIds"),
     (lambda: fs.TrackIds().track_id(1.7), "int_id must be an integer"),
