@@ -105,7 +105,9 @@ def optimality_gap(covs, weights, criterion="trace") -> float:
 def _simplex_weights(weights, N: int) -> np.ndarray:
     """weights (N,) as float64 on the simplex: finite, >= 0 and summing to 1 within 1e-9,
     or N times the rounding unit of a lower precision they came in (float32 weights of a
-    float64 solution sum to 1 only within 1e-8); divided by their sum."""
+    float64 solution sum to 1 only within 1e-8), at most its square root (3.5e-4 for
+    float32, 0.031 for float16: N eps passed 1 at N = 1,024 float16 weights, and all-zero
+    weights gave an infinite certificate, fuzz of 2026-11-29); divided by their sum."""
     w = real_array(weights, "weights").copy()  # C-contiguous, writable: one compiled type
     given = np.asarray(weights).dtype  # (after the check: a ragged list raised in numpy)
     if w.shape != (N,):
@@ -116,7 +118,7 @@ def _simplex_weights(weights, N: int) -> np.ndarray:
         i = int(np.argmin(w))
         raise FusionInputError(f"weights must be >= 0, got {safe_repr(float(w[i]))} at node {i}")
     eps = np.finfo(given).eps if given.kind == "f" else 0.0
-    tol = max(1e-9, N * eps)
+    tol = max(1e-9, min(N * eps, np.sqrt(eps)))
     if not abs(w.sum() - 1.0) <= tol:
         raise FusionInputError(f"weights must sum to 1 (within {tol:.3g}), got a sum of "
                                f"{safe_repr(float(w.sum()))}")

@@ -214,3 +214,14 @@ def test_certificate_takes_float32_weights_and_names_what_is_wrong(criterion):
                        ([0.2, 0.3, 0.5, 1e-8], r"sum to 1 \(within 1e-09\), got a sum of 1\.0")):
         with pytest.raises(fo.FusionInputError, match=message):
             fo.optimality_gap(covs, w, criterion)
+    # fuzz of 2026-11-29: N eps of float16 passed 1 at N = 1,024, so all-zero weights (an
+    # infinite certificate) and weights summing to 2.9 were taken; the rounding of a
+    # solution's weights to float16 (at most eps / 2 of their sum) still passes
+    N = 2000
+    many = np.stack([covs[i % 4] for i in range(N)])
+    for w in (np.zeros(N, np.float16), np.float16([2.9] + [0] * (N - 1))):
+        with pytest.raises(fo.FusionInputError, match=r"sum to 1 \(within 0\.0312\)"):
+            fo.optimality_gap(many, w, criterion)
+    uniform = np.full(N, 1 / N)
+    g = fo.optimality_gap(many, uniform.astype(np.float16), criterion)
+    assert g == pytest.approx(fo.optimality_gap(many, uniform, criterion), rel=1e-3)
