@@ -77,7 +77,7 @@ def _run_info(out_dir: Path) -> tuple[float, str]:
     measured, or if machine.json does not hold it whole)."""
     try:
         info = json.loads((out_dir / "machine.json").read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return np.nan, ""
     try:
         load = float(info["kernel_load_s"])

@@ -91,9 +91,11 @@ def _user_file(path, defaults: dict, named: frozenset = frozenset()) -> dict:
     try:
         with open(path, "rb") as fh:
             user = tomllib.load(fh)
-    except (OSError, ValueError) as exc:  # TOMLDecodeError, UnicodeDecodeError (not UTF-8)
+    except (OSError, ValueError, RecursionError) as exc:  # TOMLDecodeError, UnicodeDecodeError
         if "4300" in str(exc):  # Python's own limit on the digits of an int (fuzz T4)
             exc = "an integer of more than 4,300 digits, which no field takes"
+        elif isinstance(exc, RecursionError):  # arrays or tables nested thousands deep
+            exc = "nested deeper than Python's parser can follow"
         raise ConfigError(f"--config {path}: {exc}") from None
     quick = user.get("quick", {})
     if not isinstance(quick, dict):

@@ -60,7 +60,7 @@ def read(path: Path) -> dict:
     except FileNotFoundError:
         raise StoreError(f"{path} does not exist: the study has not been run there (run "
                          "it first, or give the --out it was run with)") from None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # JSON nested past the stack too
         raise StoreError(f"{path} is not readable ({exc}); run the study again") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
         raise StoreError(f"{path} holds no configuration; run the study again")

@@ -42,6 +42,9 @@ CASES = [  # (study, TOML file, what the one line must say)
     ("table1", "[check]\nsteps = -1\n", "check.steps must be an integer >= 0 and <= 960, got -1"),
     ("table1", '[check]\nbackend = "gurobi"\n', "check.backend must be one of ['newton'"),
     ("table1", "runs = [\n", "--config"),
+    # fuzz of 2026-11-29: Python's TOML parser recursed into a RecursionError traceback
+    ("table1", "runs = " + "[" * 5000 + "]" * 5000 + "\n",
+     "nested deeper than Python's parser can follow"),
     ("table2", '[network]\nassociation = "closest"\n', "network.association must be one of"),
     ("table2", "[network]\nthreshold = -0.3\n", "network.threshold must be a finite number > 0"),
     ("table2", '[network.neighbours]\n"8" = [1, 2, 9]\n',

@@ -260,6 +260,16 @@ def test_a_hand_edited_benchmark_meta_json_is_refused_by_report(measured, tmp_pa
         _report_refused(out, "backends", capsys)
 
 
+def test_a_meta_json_nested_past_the_stack_is_refused_by_report(measured, tmp_path, capsys):
+    """Fuzz of 2026-11-29: JSON nested 100,000 deep made json.loads raise RecursionError,
+    a traceback where every other unreadable meta.json is refused in one line."""
+    out = tmp_path / "out"
+    shutil.copytree(measured, out)
+    (out / "backends" / "meta.json").write_text("[" * 100_000 + "]" * 100_000)
+    assert "meta.json is not readable (maximum recursion depth exceeded" in \
+        _report_refused(out, "backends", capsys)
+
+
 def test_a_measurement_file_its_run_did_not_record_is_refused(measured, tmp_path, capsys):
     """A throughput.json beside a store that recorded none (left by another run) is not
     shown as this run's."""
