@@ -51,6 +51,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 from . import BACKENDS, FusionInputError, FusionResult, fuse
 from .estimates import Estimates
+from .limits import estimates_bytes, fits
 from .validation import hashable, is_integer, is_real, real_array, safe_repr, short_repr
 
 __all__ = ["EPOCH", "OptimalChernoffUpdater", "StoneSoupTracker", "TrackIds", "fuse_states",
@@ -386,6 +387,7 @@ class StoneSoupTracker:
                                    f"(time, tracks), got {type(tracker).__name__}")
         if not is_integer(ndim) or ndim < 1:
             raise FusionInputError(f"ndim must be an integer >= 1, got {safe_repr(ndim)}")
+        fits(f"ndim = {safe_repr(ndim)}", estimates_bytes(1, ndim))  # as a step's Estimates
         _check_epoch(epoch)
         if node is not None and not hashable(node):
             raise FusionInputError(f"node must be hashable (a name), got {safe_repr(node)}")

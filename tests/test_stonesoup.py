@@ -532,7 +532,8 @@ def _gaussian(mean, t=T0):
     (lambda: fs.to_estimates([Track([_gaussian([1.0, 2.0])])], track_ids={}),
      "track_ids must be a TrackIds"),
     (lambda: fs.TrackIds().track_id(1.7), "int_id must be an integer"),
-    (lambda: fs.StoneSoupTracker([], ndim=2, node=[1]), "node must be hashable")])
+    (lambda: fs.StoneSoupTracker([], ndim=2, node=[1]), "node must be hashable"),
+    (lambda: fs.StoneSoupTracker([], ndim=10**12), "^ndim = 1000000000000: ")])
 def test_adapter_refuses_by_name(call, match):
     """Regression: a complex mean lost its imaginary part (a ComplexWarning only); the
     others raised OverflowError, AttributeError, TypeError or silently made '1' of 1.7."""
