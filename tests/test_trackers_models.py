@@ -165,6 +165,20 @@ def test_a_long_step_without_dynamics_gives_the_closed_form_noise(dt):
     assert np.linalg.eigvalsh(Q).min() >= -1e-12 * np.abs(Q).max()
 
 
+def test_a_process_noise_near_the_float64_limit_stays_finite():
+    """Fuzz3 F1: Q = Qc dt = 1e308 is representable, but the final symmetrisation
+    0.5 * (Q + Q.T) overflowed to inf after the finiteness check (a RuntimeWarning only),
+    and turn_model then refused its own Q. Against the closed form Q = L Qc L^T dt."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for Qc, dt in ((1e308, 1.0), (1.0, 1e308), (1.7e308, 1.0)):
+            A, Q = models.discretize([[0.0]], [[1.0]], [[Qc]], dt)
+            np.testing.assert_array_equal(Q, [[Qc * dt]])
+        Q = models.turn_model(0.0, 1e308, 1.0, 1.0).Q
+    np.testing.assert_allclose(Q[[0, 0, 2], [0, 2, 2]], [1e308 / 3, 1e308 / 2, 1e308],
+                               rtol=1e-15)
+
+
 @pytest.mark.parametrize("a", [1e12, 1e15, 1e17, 1.8e18])
 def test_a_turn_whose_doublings_lose_the_rotation_is_refused(a):
     """Fuzz U8: over dt = 0.1 these turn rates need 38 to 62 doublings, each doubling the

@@ -148,8 +148,9 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
                                "transition or process noise overflows float64")
     if s:
         _check_doublings(F, A, s, dt)
-    # Q is symmetric in exact arithmetic; remove the rounding asymmetry so Cholesky works.
-    return A, 0.5 * (Q + Q.T)
+    # Q is symmetric in exact arithmetic; remove the rounding asymmetry so Cholesky works
+    # (halved before the sum, which would overflow for entries past 8.99e307).
+    return A, 0.5 * Q + 0.5 * Q.T
 
 
 @dataclass(frozen=True, eq=False)
