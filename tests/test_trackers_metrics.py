@@ -143,6 +143,32 @@ def test_metrics_refuse_complex_booleans_and_fractional_components():
         metrics.mse([[True, 0.0]], [[0.0, 0.0]])
 
 
+def test_metrics_refuse_a_state_of_no_component_and_repeated_components():
+    """Fuzz3 F2, F3: a state of dimension 0 ended in numpy's "zero-size array to reduction
+    operation maximum" from rmse and the four covariance metrics (mse gave 0.0). F5:
+    components=(0, 0) counted one error twice (mse 10.0 where (0,) gives 5.0) and nees then
+    blamed covs."""
+    empty, covs = np.zeros((2, 0)), np.zeros((2, 0, 0))
+    for call in (metrics.mse, metrics.rmse):
+        with pytest.raises(FusionInputError, match=r"estimates must be \(T, n\) with n >= 1"):
+            call(empty, empty)
+    for call in (metrics.nees, metrics.anees):
+        with pytest.raises(FusionInputError, match=r"estimates must be \(T, n\) with n >= 1"):
+            call(empty, empty, covs)
+    for call in (metrics.spectral_norms, metrics.mncm):
+        with pytest.raises(FusionInputError, match=r"covs must be \(T, n, n\) with n >= 1"):
+            call(covs)
+    est, truth, eye = np.array([[1.0, 2.0], [3.0, 4.0]]), np.zeros((2, 2)), np.eye(2)[None]
+    assert metrics.mse(est, truth, components=(0,)) == (1 + 9) / 2
+    assert metrics.mse(est, truth, components=np.array([1, 0])) == (1 + 4 + 9 + 16) / 2
+    for call in (lambda c: metrics.mse(est, truth, c), lambda c: metrics.rmse(est, truth, c),
+                 lambda c: metrics.nees(est, truth, np.repeat(eye, 2, axis=0), c),
+                 lambda c: metrics.mncm(np.repeat(eye, 2, axis=0), c)):
+        with pytest.raises(FusionInputError, match=r"components must be distinct indices, "
+                                                   r"got \(0, 0\)"):
+            call((0, 0))
+
+
 def test_set_errors_against_brute_force_and_each_metric_alone():
     """set_errors' OSPA and GOSPA (one shared assignment) against enumeration; its pairs
     (match's order-1 assignment) cost, with c for each of the smaller set's points left

@@ -46,7 +46,10 @@ def _indices(components, n: int) -> np.ndarray:
     if a.dtype.kind not in "iu" or a.size == 0 or np.any(a < 0) or np.any(a >= n):
         raise FusionInputError(f"components must be integer indices in [0, {n}), got "
                                f"{safe_repr(components)}")
-    return a.reshape(-1)
+    a = a.reshape(-1)
+    if np.unique(a).size != a.size:  # a repeated index would count its error twice
+        raise FusionInputError(f"components must be distinct indices, got {safe_repr(components)}")
+    return a
 
 
 def _components(arr: np.ndarray, components) -> np.ndarray:
@@ -60,6 +63,9 @@ def _pair(estimates, truth):
     x = _checks.finite_array("truth", truth, ndim=2)
     if m.shape != x.shape:
         raise FusionInputError(f"estimates {m.shape} and truth {x.shape} must have the same shape")
+    if m.shape[1] == 0:
+        raise FusionInputError(f"estimates must be (T, n) with n >= 1 state components, got "
+                               f"{m.shape}")
     return m, x
 
 
@@ -77,7 +83,7 @@ def _errors(estimates, truth, components) -> np.ndarray:
 
 def mse(estimates, truth, components=None) -> float:
     """Mean over time of the squared error norm. estimates, truth (T, n); ``components``
-    selects state indices (e.g. models.POSITION), default the full state. Refused if it
+    selects distinct state indices (e.g. models.POSITION), default the full state. Refused if it
     overflows float64 (`rmse` does not)."""
     e = _errors(estimates, truth, components)
     with np.errstate(over="ignore"):
@@ -107,8 +113,8 @@ def rmse(estimates, truth, components=None) -> float:
 def _cov_block(covs, components):
     """The (T, k, k) blocks of symmetric positive semidefinite covariances (T, n, n)."""
     P = _checks.finite_array("covs", covs, ndim=3)
-    if P.shape[1] != P.shape[2]:
-        raise FusionInputError(f"covs must be (T, n, n), got {P.shape}")
+    if P.shape[1] != P.shape[2] or P.shape[1] == 0:
+        raise FusionInputError(f"covs must be (T, n, n) with n >= 1, got {P.shape}")
     if components is not None:
         idx = _indices(components, P.shape[1])
         P = P[:, idx[:, None], idx[None, :]]
