@@ -124,3 +124,22 @@ def test_logsumexp_agrees_with_scipy_at_the_edges():
              (rng.normal(0, 300, (4, 5)), 0), (rng.normal(0, 300, (4, 5)), None)]
     for a, axis in cases:
         np.testing.assert_allclose(logsumexp(a, axis), reference(a, axis=axis), rtol=1e-15)
+
+
+def test_weights_past_the_memory_limit_are_refused_before_any_temporary():
+    """Fuzz3 F4: a broadcast view of 10^9 log-weights costs 8 bytes to hold, and the
+    normalisation and resampling then allocated several (N,) arrays of 8 GB: MemoryError,
+    or the OOM killer with no message. Refused naming logw (a) before allocating."""
+    big = np.broadcast_to(np.zeros(1), (10**9,))
+    rng = np.random.default_rng(0)
+    for call in (resampling.normalize_log_weights, resampling.effective_sample_size,
+                 lambda w: resampling.systematic_resample(w, rng),
+                 lambda w: resampling.end_of_step(w, 0.5, rng)):
+        with pytest.raises(FusionInputError, match=r"logw of 1000000000 weights: .* GiB.*"
+                                                   r"array_memory"):
+            call(big)
+    with pytest.raises(FusionInputError, match=r"a of shape \(1000000000,\): .*array_memory"):
+        resampling.logsumexp(big)
+    # a broadcast view within the limit is taken, and gives the uniform answer
+    w = np.broadcast_to(np.zeros(1), (1000,))
+    assert resampling.effective_sample_size(w) == pytest.approx(1000, rel=1e-12)

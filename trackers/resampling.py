@@ -30,6 +30,7 @@ def logsumexp(a: np.ndarray, axis: int | None = None) -> np.ndarray:
     RBPF's run time).
     """
     a = np.asarray(a, dtype=float)
+    _checks.fits(f"a of shape {a.shape}", 3 * 8.0 * a.size)  # a - peak, its exp, the sum
     if a.size == 0:  # numpy's max of nothing raised a bare ValueError (fuzz N12)
         return np.full(np.sum(a, axis=axis).shape, -np.inf)[()]
     peak = a.max(axis=axis, keepdims=True)
@@ -49,6 +50,9 @@ def normalize_log_weights(logw: np.ndarray) -> np.ndarray:
     logw = real_array(logw, "logw")
     if logw.ndim != 1 or logw.size == 0:
         raise FusionInputError(f"logw must be a non-empty (N,) array, got shape {logw.shape}")
+    # before any temporary: a broadcast view of 10^9 weights costs 8 bytes to hold, and the
+    # normalisation and resampling make about six (N,) arrays of it
+    _checks.fits(f"logw of {logw.size} weights", 6 * 8.0 * logw.size)
     peak = logw.max()  # NaN if any is NaN
     if not np.isfinite(peak):
         raise FusionInputError(f"logw must be finite or -inf with at least one finite "
