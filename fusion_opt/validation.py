@@ -67,10 +67,11 @@ def finite_real(x) -> float | None:
 
 def hashable(value) -> bool:
     """Whether value can name something (a dict key): hash() succeeds. isinstance(value,
-    Hashable) is True for a tuple holding a list, which then fails as a key."""
+    Hashable) is True for a tuple holding a list, which then fails as a key; a generic
+    np.timedelta64 raises ValueError (fuzz4), and any error of hash() means no name."""
     try:
         hash(value)
-    except TypeError:
+    except Exception:  # noqa: BLE001 (whatever hash() raises, the value cannot be a key)
         return False
     return True
 

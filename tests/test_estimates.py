@@ -61,6 +61,7 @@ def test_empty_and_its_hint():
     (dict(ids=[1]), r"ids must have shape \(2,\)"),
     (dict(time=float("nan")), "time must be a finite real number"),
     (dict(node=["unhashable"]), "node must be hashable"),
+    (dict(node=np.timedelta64(5)), "node must be hashable"),  # hash() raised ValueError
 ])
 def test_a_bad_field_is_refused_by_name(kwargs, match):
     args = dict(means=M, covs=C, ids=None, time=None, node=None) | kwargs

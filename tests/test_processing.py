@@ -366,6 +366,8 @@ GOOD = dict(threshold=1.0, p_detect={"a": 0.9, "b": 0.8})
     ([], {}, "sources is empty"),
     (["a", "a"], {}, "more than once: 'a'"),
     (["a", ["b"]], {}, "hashable"),
+    (["a", np.timedelta64(5)], {}, "sources must be hashable"),  # hash(): ValueError (fuzz4)
+    (["a", "b"], dict(name=np.timedelta64(5)), "name must be hashable"),
     (["a", "b"], dict(method="magic"), "method must be one of"),
     (["a", "b"], dict(method="known-cross"), "cross-covariances"),
     (["a", "b", "c"], dict(method="ci", p_detect=None), "'ci' fuses pairs.*3 sources"),
