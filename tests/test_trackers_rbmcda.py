@@ -294,3 +294,29 @@ def test_helpers_clock_and_streams_refuse_by_name():
         scenarios.simulate_table1(scenarios.Table1Config(n_steps=5), legacy)
     with pytest.raises(FusionInputError, match=r"turn_rates: turn rate 0 = 1e\+300"):
         scenarios.CrossingConfig(turn_rates=(1e300,))
+
+
+def test_the_track_extractions_memory_check_covers_its_peak(monkeypatch):
+    """Fuzz4: `extract_tracks` checked 8 U K (n + 2) bytes, but mixture_moments holds two
+    (U, K, n) arrays at once: a step of 600 measurements was accepted under an 80 MiB
+    limit and peaked at 112 MiB. Its traced peak, on the state a step of 200 measurements
+    left (some 60 tracks over 900 alive targets), is now within what it checks."""
+    import tracemalloc
+
+    from trackers import models
+
+    f = rbmcda.RBMCDA(models.turn_model(0.0, 1.0, 1.0, 1.0), np.zeros(4), np.eye(4) * 1e4,
+                      rng=np.random.default_rng(0), dt=1.0, n_particles=15, birth_prob=0.5,
+                      clutter_prior=0.01, clutter_density=1e-12, lifetime_scale=1e6)
+    f.step(np.random.default_rng(0).uniform(-1e3, 1e3, size=(200, 2)))
+    s, w = f.particles, np.full(15, 1 / 15)
+    checked = []
+    monkeypatch.setattr(rbmcda._checks, "fits", lambda what, n_bytes: checked.append(n_bytes))
+    tracemalloc.start()
+    try:
+        ids, means, covs = rbmcda.extract_tracks(s, w)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(ids) >= 40 and s.alive.sum() >= 500 and len(checked) == 1
+    assert 0.5 * checked[0] <= peak <= checked[0]

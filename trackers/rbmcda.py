@@ -304,8 +304,9 @@ def extract_tracks(s: RBMCDAState, w: np.ndarray):
         n = s.M.shape[-1]
         return ids, np.zeros((0, n)), np.zeros((0, n, n))
     rows, cols = s.alive.nonzero()
+    # share (U, K) and its mask, and mixture_moments' dm and weighted dm, (U, K, n) each
     _checks.fits(f"scan: the MAP particle's {ids.size} tracks over {rows.size} alive targets",
-                 8.0 * ids.size * rows.size * (s.M.shape[-1] + 2))
+                 8.0 * ids.size * rows.size * (2 * s.M.shape[-1] + 2))
     # share[u, k]: weight of alive target k in track u's mixture (one per particle at most)
     share = (s.ids[rows, cols] == ids[:, None]) * w[rows]
     share /= share.sum(axis=1, keepdims=True)
