@@ -662,7 +662,7 @@ def _sweep_tables(results, name, spec, band) -> list[str]:
         for crit in ("trace", "logdet"):
             d = _mbci_minus_bci(results, name, v, crit)
             cells += [stats.fmt(d["mean_diff"], d["low"], d["high"], 3),
-                      f"{d['share_better']:.2f}"]
+                      stats.fmt_share(d)]
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return lines + [""]
 

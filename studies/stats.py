@@ -69,6 +69,12 @@ def fmt(mean: float, low: float, high: float, digits: int = 4) -> str:
     return f"{mean:.{digits}g} [{low:.{digits}g}, {high:.{digits}g}]"
 
 
+def fmt_share(d: dict) -> str:
+    """The share of runs where a paired rule is lower (`paired`), '0.55'; '-' when no run
+    defines the difference."""
+    return "-" if np.isnan(d["share_better"]) else f"{d['share_better']:.2f}"
+
+
 def summarise(results: list[dict], rows, columns) -> dict:
     """{row: {column: mean_ci over runs}} for per-run results[i][row][column]."""
     return {row: {col: mean_ci([r[row][col] for r in results]) for col in columns}

@@ -625,7 +625,10 @@ def _markdown(config, summary, paired, results) -> list[str]:
     sc, m, fusion = scenario(config), config["metrics"], config["fusion"]
     n, base = len(results), fusion["baseline"]
     matched = int(np.median([r[base]["matched"] for r in results]))
-    band = metrics.anees_bounds(NDIM, matched) if matched else (np.nan, np.nan)
+    band = "none: the median run matched no estimate to a target"
+    if matched:
+        low, high = metrics.anees_bounds(NDIM, matched)
+        band = f"[{low:.3g}, {high:.3g}]"
     sensors = "; ".join(f"{name}: p_D {p}, clutter {lam} / scan, sd_x {sd[0]} m, sd_y {sd[1]} m"
                         for name, p, lam, sd in zip(sensor_names(sc), sc.p_detect,
                                                     sc.clutter_rate, sc.noise_sd, strict=True))
@@ -640,11 +643,11 @@ def _markdown(config, summary, paired, results) -> list[str]:
              f"{m['cutoff']} m, p = {m['order']}; card. error: mean |n_est - n_true|; pos. RMSE "
              "and ANEES (mean 4-dof NEES) over the estimates matched to a target (closer than "
              f"c); runs in band: share of runs whose ANEES lies in the 95% chi-square band of "
-             f"its matched count (the median run's band: [{band[0]:.3g}, {band[1]:.3g}]; "
-             "nominal, the NEES of one track are correlated in time); fused tr P: mean trace "
-             "of the full covariance (m^2 and m^2/s^2) over the groups of two or more "
-             "(a sensor: its members of those groups); µs / fusion: median wall time of one "
-             "rule call on one group, Stone Soup states in and out. " + stats.INTERVAL_NOTE, "",
+             f"its matched count (the median run's band: {band}; nominal, the NEES of one "
+             "track are correlated in time); fused tr P: mean trace of the full covariance "
+             "(m^2 and m^2/s^2) over the groups of two or more (a sensor: its members of "
+             "those groups); µs / fusion: median wall time of one rule call on one group, "
+             "Stone Soup states in and out. " + stats.INTERVAL_NOTE, "",
              "| row | " + " | ".join(HEADERS[c] for c in RULE_COLUMNS) + " |",
              "|---" * (len(RULE_COLUMNS) + 1) + "|"]
     for row, cols in summary.items():
@@ -656,8 +659,8 @@ def _markdown(config, summary, paired, results) -> list[str]:
               "|---|---|---|---|---|---|"]
     base_trace = np.mean([r[base]["trace"] for r in results])
     for rule, cols in paired.items():
-        cells = [f"{stats.fmt(d['mean_diff'], d['low'], d['high'], 3)} ({d['share_better']:.2f})"
-                 for d in cols.values()]
+        cells = [f"{stats.fmt(d['mean_diff'], d['low'], d['high'], 3)} ({stats.fmt_share(d)})"
+                 if d["runs"] else "-" for d in cols.values()]  # no run defines it: "-"
         t = cols["trace"]
         pct = stats.fmt(*(100 * np.array([t["mean_diff"], t["low"], t["high"]]) / base_trace),
                         3)

@@ -194,7 +194,7 @@ def _markdown(config, rows, results, paper: dict) -> str:
               "|---|---|---|"]
     for col, p in _paired(results).items():
         lines.append(f"| {col} | {stats.fmt(p['mean_diff'], p['low'], p['high'], 3)} "
-                     f"| {p['share_better']:.2f} |")
+                     f"| {stats.fmt_share(p)} |")
     shown = [] if paper else ["", PAPER_NOTE]
     return "\n".join(lines + ["", _check_note(config, results)] + shown) + "\n"
 

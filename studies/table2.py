@@ -233,9 +233,8 @@ def _markdown(config, rows, results, paper: dict) -> str:
               "|---|---|---|---|"]
     for proc, pair in _paired(config, results).items():
         pm, pc = pair["mse"], pair["mncm"]
-        share = "-" if np.isnan(pm["share_better"]) else f"{pm['share_better']:.2f}"
         lines.append(f"| {proc} | {stats.fmt(pm['mean_diff'], pm['low'], pm['high'], 3)} | "
-                     f"{share} | "
+                     f"{stats.fmt_share(pm)} | "
                      f"{stats.fmt(pc['mean_diff'], pc['low'], pc['high'], 3)} |")
     shown = [] if paper else ["", PAPER_NOTE]
     return "\n".join(lines + shown) + "\n"

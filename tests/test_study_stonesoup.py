@@ -308,11 +308,15 @@ def test_tiny_run_writes_tables_and_figures_and_report_rebuilds_them(tmp_path):
 def test_a_rule_that_fuses_nothing_is_a_dash_not_a_keyerror(tmp_path):
     """Fuzz H1: with one scan (or a tight threshold) no group forms, no rule fuses, and the
     report ended in a KeyError traceback ('us_per_fusion'); its time, ANEES and band are
-    '-' now, as for any score a run does not have."""
+    '-' now, as for any score a run does not have. Fuzz4: the band in the note and the
+    paired rows' RMSE and trace were still written "[nan, nan]" and "- (nan)"."""
     folder = tiny_run(tmp_path, "stonesoup", "runs = 2\n[scenario]\nsteps = 1\n", OUTPUTS)
-    rows = [line for line in (folder / "stonesoup.md").read_text().splitlines()
-            if line.startswith("| BCI trace | ")]
+    table = (folder / "stonesoup.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| BCI trace | ")]
     assert rows and rows[0].endswith("| - | - | - | - |"), rows
+    assert rows[1] == "| BCI trace | 0 [0, 0] (0.00) | 0 [0, 0] (0.00) | - | - | - |", rows
+    assert "band: none: the median run matched no estimate" in table
+    assert "nan" not in table.lower()
 
 
 @pytest.mark.slow
