@@ -164,6 +164,7 @@ def test_a_failing_backend_is_counted_not_fatal(tmp_path, monkeypatch):
     ({"batch_shapes": [[4, 1]]}, "batch_shapes[0][1] (N) must be an integer >= 2"),
     ({"batch_shapes": [[4, 3], [4, 3]]}, "batch_shapes lists a shape more than once"),
     ({"batch_small": 3000}, "batch_small must be <= batch_size"),
+    ({"batch_check": 3000}, "batch_check must be <= batch_size (2000), got 3000"),  # fuzz4
     ({"profile_tolerances": [0]}, "profile_tolerances[0] must be a finite number > 0"),
     ({"repeat_budget_ms": "20"}, "repeat_budget_ms must be a finite number > 0"),
     ({"large_backends": ["mosek"]}, "large_backends[0] must be one of"),
