@@ -45,7 +45,9 @@ def report(config: dict, out_dir: Path, *, quick: bool) -> None:
 
 
 def _write_csv(path: Path, columns, rows, plain: bool = False) -> None:
-    """rows (dicts, or lists in the order of columns when plain) as CSV at path."""
+    """rows (dicts, or lists in the order of columns when plain) as CSV at path; a value
+    that does not apply (NaN: a native backend's own solver time) is an empty cell, as in
+    the other studies' CSVs (fuzz4: 'nan' in every row of a run)."""
     with open(path, "w", newline="") as fh:
         if plain:
             writer = csv.writer(fh)
@@ -53,16 +55,26 @@ def _write_csv(path: Path, columns, rows, plain: bool = False) -> None:
         else:
             writer = csv.DictWriter(fh, fieldnames=columns)
             writer.writeheader()
+            rows = [{k: "" if isinstance(v, float) and np.isnan(v) else v
+                     for k, v in row.items()} for row in rows]
         writer.writerows(rows)
+
+
+# the columns of the measurement CSVs that hold text, where an empty cell is "" (no
+# failure), not a number that does not apply
+_TEXT = frozenset({"mode", "call", "backend", "criterion", "kind", "first_failure"})
 
 
 def _read_csv(path: Path) -> list[dict]:
     with open(path, newline="") as fh:
-        return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+        return [{k: v if k in _TEXT else _number(v) for k, v in row.items()}
+                for row in csv.DictReader(fh)]
 
 
 def _number(text: str):
-    """A CSV cell back as the int, float or string it was written from."""
+    """A CSV cell back as the int, float or string it was written from; empty: NaN."""
+    if text == "":
+        return np.nan
     for kind in (int, float):
         try:
             return kind(text)
