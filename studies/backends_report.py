@@ -13,7 +13,7 @@ import numpy as np
 
 from fusion_opt.backends import EXACT
 
-from . import plotting
+from . import plotting, stats
 from .peers import PEERS
 
 BCI, CI, RAW = "fo.bci", "fo.ci", "fo.fuse(polish=False)"
@@ -55,8 +55,7 @@ def _write_csv(path: Path, columns, rows, plain: bool = False) -> None:
         else:
             writer = csv.DictWriter(fh, fieldnames=columns)
             writer.writeheader()
-            rows = [{k: "" if isinstance(v, float) and np.isnan(v) else v
-                     for k, v in row.items()} for row in rows]
+            rows = [stats.blank_nan(row) for row in rows]
         writer.writerows(rows)
 
 

@@ -91,11 +91,16 @@ def write_csv(path, summary: dict, columns, paper: dict, paper_columns) -> None:
                       for row, cols in summary.items()])
 
 
+def blank_nan(row: dict) -> dict:
+    """row for a CSV: a value no run defines or that does not apply (NaN) as an empty
+    cell."""
+    return {k: "" if isinstance(v, float) and np.isnan(v) else v for k, v in row.items()}
+
+
 def write_rows(path, rows: list[dict]) -> None:
-    """A CSV of rows (dicts with the same keys, in the first row's order); a value no run
-    defines (NaN) is an empty cell."""
-    rows = [{k: "" if isinstance(v, float) and np.isnan(v) else v for k, v in r.items()}
-            for r in rows]
+    """A CSV of rows (dicts with the same keys, in the first row's order), NaN as an
+    empty cell (`blank_nan`)."""
+    rows = [blank_nan(r) for r in rows]
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else [])
         w.writeheader()
