@@ -232,12 +232,14 @@ def _out_of_range(value) -> FusionInputError:
 
 def _shown(value) -> str:
     """A number as a message shows it: numpy's scalars as their value, not np.float64(...),
+    but a datetime64 or timedelta64 as itself (the item of a unitless np.timedelta64(5) is
+    the int 5, and "must be a finite real number, got 5" named a valid time: fuzz5 1),
     and an int of 400 digits shortened (`short_repr`)."""
     if isinstance(value, decimal.Decimal) and value.is_finite() and value.adjusted() < 30 \
             and value == value.to_integral():
         value = int(value)  # a whole Decimal of a few digits by them, as an int is shown
-    return short_repr(value.item() if isinstance(value, np.generic) and
-                      value.dtype.itemsize <= 8 else value)
+    return short_repr(value.item() if isinstance(value, np.generic) and value.dtype.kind
+                      not in "mM" and value.dtype.itemsize <= 8 else value)
 
 
 def check_forward(time: float | None, last: float | None, name: str = "time") -> None:
