@@ -91,18 +91,18 @@ class Group:
         return group
 
     def _set(self, sources, ids, means, covs) -> None:
-        for a in (ids, means, covs):
-            a.setflags(write=False)
-        for name, value in zip(("sources", "ids", "means", "covs"), (sources, ids, means, covs),
-                               strict=True):
-            object.__setattr__(self, name, value)
+        ids.setflags(write=False)
+        means.setflags(write=False)
+        covs.setflags(write=False)
+        self.__dict__.update(sources=sources, ids=ids, means=means, covs=covs)  # frozen
 
     def __len__(self) -> int:
         return len(self.sources)
 
-    @property
+    @functools.cached_property
     def pairs(self) -> tuple[tuple[Hashable, int], ...]:
-        """(source, source track id) of each member: the source tracks the group joins."""
+        """(source, source track id) of each member: the source tracks the group joins
+        (made once: a processing node reads it twice a step for every group)."""
         return tuple(zip(self.sources, self.ids.tolist(), strict=True))
 
 
@@ -131,7 +131,8 @@ def groups_of(names: list, reports: list[Estimates], threshold: float, method: s
     members = (_nearest if method == "nearest" else _assignment)(points, owner, threshold)
     covs = np.concatenate([r.covs for r in reports])
     ids = np.concatenate([r.ids for r in reports])
-    return [Group._of(tuple(names[k] for k in owner[idx]), ids[idx], means[idx], covs[idx])
+    source = [names[k] for k in owner.tolist()]  # each point's source name
+    return [Group._of(tuple([source[j] for j in idx.tolist()]), ids[idx], means[idx], covs[idx])
             for idx in members]
 
 

@@ -183,7 +183,11 @@ class ProcessingNode:
                 holders[p].append(f)  # says it keeps it)
         group, fid, shared = [], [], []  # one entry per (group, recent track) sharing pairs
         for i, g in enumerate(groups):
-            for f, count in Counter(f for p in g.pairs for f in holders.get(p, ())).items():
+            counts: dict[int, int] = {}  # a Counter costs more than a small group's count
+            for p in g.pairs:
+                for f in holders.get(p, ()):
+                    counts[f] = counts.get(f, 0) + 1
+            for f, count in counts.items():
                 group.append(i)
                 fid.append(f)
                 shared.append(count)
