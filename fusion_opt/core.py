@@ -303,7 +303,13 @@ _THREAD = threading.local()
 # "solve" compiles, so that "assemble", after them, would load the 17 s of kernels it
 # shares with "solve" from the cache: cold, "rules" alone took 50-54 s (it shares most of
 # its kernels with "solve" too) and the paper study's parts 133 and 136 s against 125 and
-# 105 s for these stages, in turns on a busy machine.
+# 105 s for these stages, in turns on a busy machine. Tried on 2026-11-29 and no faster:
+# numba inlining (`linalg.inline`) the solver's kernels called from one place (`_priced`,
+# `_nearest`), which numba otherwise compiles, optimises and links again in every caller:
+# "solve" alone 51.0 -> 40.7 s, but "assemble" 29.3 -> 34.6 and "fuse" 10.2 -> 14.7 (they
+# compile the inlined code again instead of linking its cached entry), and the paper
+# study's stages on a pool of two 85.5 against 86.2 s; inlining assemble's
+# `_vertex_or_interior`, `_vertex` and `_interior` as well made "fuse" 43 s.
 KERNEL_STAGES = (("solve", "assemble", "cross", "pairs"), ("rules", "fuse", "conic", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
