@@ -42,7 +42,7 @@ from scipy.spatial.distance import cdist
 from .estimates import Estimates, track_ids
 from .limits import fits, limits
 from .linalg import jit, row_norms
-from .results import FusionInputError
+from .results import FusionInputError, ReadOnly
 from .validation import finite_real, hashable, is_integer, is_sequence, safe_repr
 
 __all__ = ["METHODS", "Group", "associate"]
@@ -52,7 +52,7 @@ _NORMAL = (1e-100, 1e100)
 
 
 @dataclass(frozen=True, eq=False)
-class Group:
+class Group(ReadOnly):
     """The estimates of one target, k of them, at most one per source (made by `associate`
     from validated reports; its arrays are read-only).
 

@@ -114,12 +114,16 @@ def test_results_and_estimates_stay_read_only_when_pickled_or_copied_and_compare
     """Fuzz of 2026-11-29: numpy gives an unpickled or deep-copied array back writeable, so a
     pickled result's cov could be written in place (a frozen result with a non-PD
     covariance); and the dataclasses' generated == compared arrays, which raised numpy's
-    "truth value of an array is ambiguous" for two results of one fusion."""
+    "truth value of an array is ambiguous" for two results of one fusion. A Group of
+    `associate` (a processing node's `groups`) too (fuzz5 2: its arrays came back
+    writeable)."""
     import copy
     import pickle
 
     objects = (fo.bci(MEANS, COVS), fo.fuse_batch(MEANS[None], COVS[None]),
-               fo.Estimates(MEANS, COVS, None, 1.0, "a"))
+               fo.Estimates(MEANS, COVS, None, 1.0, "a"),
+               fo.associate({"a": fo.Estimates(MEANS[:1], COVS[:1]),  # a Group (fuzz5 2)
+                             "b": fo.Estimates(MEANS[:1], COVS[:1])}, 1.0)[0])
     for obj in objects:
         for made in (pickle.loads(pickle.dumps(obj)), copy.copy(obj), copy.deepcopy(obj)):
             assert type(made) is type(obj)
