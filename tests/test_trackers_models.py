@@ -55,6 +55,16 @@ def test_linear_gaussian_is_frozen_and_read_only():
         model.A = np.eye(4)
     with pytest.raises(ValueError):
         model.A[0, 0] = 2.0
+    # fuzz6 1: a pickled or copied model's arrays came back writeable (a deep-copied
+    # filter's model.R could then be set negative in place)
+    import copy
+    import pickle
+
+    for made in (pickle.loads(pickle.dumps(model)), copy.copy(model), copy.deepcopy(model)):
+        for name in "AQHR":
+            got = getattr(made, name)
+            assert not got.flags.writeable, name
+            np.testing.assert_array_equal(got, getattr(model, name))
 
 
 @pytest.mark.parametrize(

@@ -141,3 +141,26 @@ def test_rbmcda_refuses_a_clock_time_before_the_last_given_one_and_changes_nothi
     with pytest.raises(FusionInputError, match="time = 50.0 is before the previous step's"):
         f.step([], time=50.0)
     assert f.step([], time=100.0).time == 100.0 and f.steps == 2
+
+
+def test_outputs_and_simulated_data_compare_by_identity():
+    """fuzz6 2: the filters' run outputs and the simulators' data, frozen dataclasses of
+    arrays, raised numpy's "truth value ... ambiguous" for == and a TypeError for hash();
+    == is identity, as for an Estimates."""
+    cfg = scenarios.Table2Config()
+    model, (m0, P0) = cfg.filter_model(), cfg.prior()
+    scans = [np.array([[0.1, 0.2]])] * 3
+
+    def table1():
+        return scenarios.simulate_table1(scenarios.Table1Config(), np.random.default_rng(3))
+
+    makers = (lambda: kalman.run(scans, model, m0, P0),
+              lambda: rbpf.run(scans, model, m0, P0, rng=np.random.default_rng(1)),
+              lambda: rbmcda.run(scans, model, m0, P0, rng=np.random.default_rng(1),
+                                 dt=cfg.dt),
+              table1, lambda: table1().nodes[0],
+              lambda: scenarios.simulate_table2(cfg, np.random.default_rng(3)))
+    for make in makers:
+        a, b = make(), make()
+        assert a == a and hash(a) == hash(a)
+        assert a != b and hash(a) != hash(b)  # equal contents, two objects

@@ -184,7 +184,7 @@ def _check_joint(C: np.ndarray) -> None:
                                f"semidefinite (smallest eigenvalue {low[i]:.3g})")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class FilterOutput:
     """Per-step filtered moments: means (T, n), covs (T, n, n)."""
 

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from fusion_opt import FusionInputError
+from fusion_opt.results import ReadOnly
 from trackers import _checks
 
 _EPS = np.finfo(np.float64).eps
@@ -154,13 +155,14 @@ def discretize(F, L, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass(frozen=True, eq=False)
-class LinearGaussian:
+class LinearGaussian(ReadOnly):
     """A linear-Gaussian state-space model x_k = A x_{k-1} + q, y_k = H x_k + r.
 
     A: (n, n) transition; Q: (n, n) process-noise covariance (PSD);
     H: (d, n) measurement matrix; R: (d, d) measurement-noise covariance (PD).
     Arrays are validated (finite and real: a complex matrix is refused, not truncated),
-    copied and made read-only on construction.
+    copied and made read-only on construction, and stay read-only in a pickled or copied
+    model (`fusion_opt.results.ReadOnly`; they came back writeable: fuzz6 1).
     """
 
     A: np.ndarray

@@ -77,7 +77,7 @@ class Track(NamedTuple):
     cov: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class RBMCDAOutput:
     """Per-step output of RBMCDA; indexing it gives ``tracks[t]``.
 

@@ -47,7 +47,7 @@ from trackers.models import LinearGaussian
 from trackers.resampling import end_of_step, logsumexp
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class RBPFOutput:
     """Per-step output of the RBPF.
 

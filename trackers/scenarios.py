@@ -36,7 +36,7 @@ CLUTTER = -1
 _PI = float(np.pi)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class NodeData:
     """The measurements of one monitoring node over T steps.
 
@@ -294,7 +294,7 @@ class Table1Config:
         return self.dt * np.arange(1, self.n_steps + 1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class Table1Data:
     """One simulated run of Table 1.
 
@@ -458,7 +458,7 @@ class Table2Config:
         return self.dt * np.arange(1, self.n_steps + 1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # == is identity, as for an Estimates
 class MultiTargetData:
     """One simulated run of a multi-target scenario (Table 2, crossing targets).
 
