@@ -214,28 +214,37 @@ def _shape_error(means, covs, batch: bool, names: Names) -> FusionInputError:
 
 def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
     """Fuse checked arrays (B, N, n), (B, N, n, n): a FusionResult (batch=False, B = 1) or
-    a BatchFusionResult."""
+    a BatchFusionResult. newton and closed-form are one compiled call, in line here (each
+    Python layer between a small fusion and its kernel cost about 1 us in a benchmark's
+    rotation, where the caches are cold); a problem whose certificate is not within
+    OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
     B, N, n = means.shape
     if req.method in PAIR_METHODS and N != 2:
         raise FusionInputError(f"method {safe_repr(req.method)} fuses 2 nodes, got N = {N}")
     if req.backend == "closed-form" and N != 2:
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
-    q, E = _detection(req, B, N, batch)
-    work = _Arrays.of(B, N, n)
-    if req.method in rules.RULES:
-        _prepare(means, covs, q, E, work, names, batch)
-        out = _compiled(req, means, covs, work, batch)
-    elif req.backend in EXACT:
-        out = _exact(req, means, covs, q, E, work, names, batch)
-    else:
-        out = _conic(req, means, covs, q, E, work, names, batch)
-    return _result(req, out, batch)
+    q, E = _detection(req, B, N, batch) if req.method == "mbci" else _unit_scales(B, N)
+    a = _Arrays.of(B, N, n)
+    if req.backend not in EXACT:
+        if req.method in rules.RULES:
+            _prepare(means, covs, q, E, a, names, batch)
+            return _compiled(req, means, covs, a, batch)
+        return _conic(req, means, covs, q, E, a, names, batch)
+    t0 = time.perf_counter()
+    code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
+                      a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
+    if code > 0:
+        raise _input_error(code, a.where, means, covs, names, batch, E)
+    # the certificate reported, which the status is decided on
+    if (a.stats[0, 2] if B == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
+        _rescue(req, means, covs, q, E, a)
+    if code < 0:
+        raise _overflow(a, batch)
+    return _ci_result(req, a, time.perf_counter() - t0, 0, batch)
 
 
 def _detection(req, B, N, batch):
-    """MBCI's scales as covariance divisors q (B, N) in [1, 2) times 2^E; 1 otherwise."""
-    if req.method != "mbci":
-        return _unit_scales(B, N)
+    """MBCI's scales as covariance divisors q (B, N) in [1, 2) times 2^E."""
     a = req.args
     q, E = detection_split(a["p_detect"], a.get("chi"), N, growth=a.get("growth"),
                            leads=((), (B,)) if batch else ((),))
@@ -400,22 +409,6 @@ def _prepare(means, covs, q, E, a, names, batch):
         raise _input_error(code, a.where, means, covs, names, batch, E)
 
 
-def _exact(req, means, covs, q, E, a, names, batch):
-    """newton and closed-form: one compiled call; a problem whose certificate is not
-    within OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
-    t0 = time.perf_counter()
-    code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
-                      a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
-    if code > 0:
-        raise _input_error(code, a.where, means, covs, names, batch, E)
-    # the certificate reported, which the status is decided on
-    if (a.stats[0, 2] if len(a.stats) == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
-        _rescue(req, means, covs, q, E, a)
-    if code < 0:
-        raise _overflow(a, batch)
-    return _ci_output(a, time.perf_counter() - t0, 0)
-
-
 def _conic(req, means, covs, q, E, a, names, batch):
     """A backend of REGISTRY problem by problem on the congruence-scaled data, then the
     Newton polish from its weights, and the fused estimates."""
@@ -432,7 +425,7 @@ def _conic(req, means, covs, q, E, a, names, batch):
     if not assemble(a.F, means, covs, q, E, a.k, a.vertex, a.pnorm, a.W, req.trace, a.mean,
                     a.cov, a.stats):
         raise _overflow(a, batch)
-    return _ci_output(a, solve_time, polish_iters)
+    return _ci_result(req, a, solve_time, polish_iters, batch)
 
 
 def _polish(a, trace) -> int:
@@ -478,17 +471,21 @@ def _rescue(req, means, covs, q, E, a):
 _OPTIMAL_OR_NOT = np.array([Status.OPTIMAL, Status.OPTIMAL_INACCURATE], dtype=object)
 
 
-def _ci_output(a, solve_time, polish_iters):
-    """The output tuple of `_result` from a's arrays; one problem's objective, gap, status
-    and iterations as 1-tuples of plain numbers (read once, without column views)."""
-    if len(a.stats) == 1:
-        obj, gap, rel = a.stats[0].tolist()
-        obj, gap, iters = (obj,), (gap,), a.iters.tolist()
-        status = (Status.OPTIMAL if rel <= OPTIMAL_RTOL else Status.OPTIMAL_INACCURATE,)
-    else:
-        obj, gap, iters = a.stats[:, 0], a.stats[:, 1], a.iters
+def _ci_result(req, a, solve_time, polish_iters, batch):
+    """The result of ci, bci or mbci from a's arrays: one problem's objective, gap, status
+    and iterations read as plain numbers at once (without column views or an output
+    tuple: each layer between the kernel and the result cost a small fusion about 1 us
+    more in a benchmark's rotation, where the caches are cold)."""
+    if batch:
         status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
-    return a.W, a.mean, a.cov, obj, gap, status, iters, solve_time, polish_iters, "ci_weights"
+        return BatchFusionResult.owning(a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1],
+                                        status, a.iters, req.backend, solve_time, req.method,
+                                        req.criterion, "ci_weights")
+    obj, gap, rel = a.stats[0].tolist()
+    status = Status.OPTIMAL if rel <= OPTIMAL_RTOL else Status.OPTIMAL_INACCURATE
+    return FusionResult.owning(a.W[0], a.mean[0], a.cov[0], obj, gap, status, req.backend,
+                               solve_time, int(a.iters[0]), req.method, req.criterion,
+                               polish_iters, "ci_weights")
 
 
 def check_memory(req, n, N, B=1):
@@ -538,33 +535,25 @@ def _overflow(a, batch: bool) -> FusionInputError:
 
 
 def _compiled(req, means, covs, a, batch):
-    """A rule of rules.RULES, the whole batch in one compiled call (on the factors
-    `prepare` left in a)."""
+    """The result of a rule of rules.RULES, the whole batch in one compiled call (on the
+    factors `prepare` left in a)."""
     B, N, n = means.shape
     cross = rules.cross_array(req.args.get("cross"), B, N, n, batch) \
         if req.method == "known-cross" else None
     weights, mean, cov, obj, status, are = rules.compiled(req.method, means, covs, a.F, a.k,
                                                           req.trace, cross, batch)
-    status = np.full(B, status, dtype=object) if batch else (status,)
-    return (weights, mean, cov, obj, np.zeros(B), status, np.zeros(B, dtype=np.int64), 0.0, 0,
-            are)
+    if batch:
+        return BatchFusionResult.owning(weights, mean, cov, obj, np.zeros(B),
+                                        np.full(B, status, dtype=object),
+                                        np.zeros(B, dtype=np.int64), None, 0.0, req.method,
+                                        req.criterion, are)
+    return FusionResult.owning(weights[0], mean[0], cov[0], float(obj[0]), 0.0, status, None,
+                               0.0, 0, req.method, req.criterion, 0, are)
 
 
 def _role(req) -> str:
     """What a FusionSolverError names: the backend, or a rule's method."""
     return "backend" if req.backend is not None else "method"
-
-
-def _result(req, out, batch):
-    """out: weights (B, N), mean (B, n), cov (B, n, n); objective, gap, status and
-    iterations, each B of them (a sequence); solve time, polish iterations, weights_are."""
-    w, mean, cov, obj, gap, status, iters, solve_time, polish_iters, weights_are = out
-    if batch:
-        return BatchFusionResult.owning(w, mean, cov, obj, gap, status, iters, req.backend,
-                                        solve_time, req.method, req.criterion, weights_are)
-    return FusionResult.owning(
-        w[0], mean[0], cov[0], float(obj[0]), float(gap[0]), status[0], req.backend,
-        solve_time, int(iters[0]), req.method, req.criterion, polish_iters, weights_are)
 
 
 def _memory(what, need, n, N, limit_name) -> str:
