@@ -47,3 +47,48 @@ def test_unpolished_backends_report_their_own_certificate():
     assert r.gap >= p.gap and p.status == "optimal"
     assert (r.status == "optimal") == (r.gap <= fo.core.OPTIMAL_RTOL * abs(r.objective))
     assert abs(fo.optimality_gap(covs, r.weights) - r.gap) <= 1e-12 * abs(r.objective)
+
+
+def test_threads_fusing_with_clarabel_each_get_their_own_problem_solved(monkeypatch):
+    """Two threads fuse problems of one shape through CVXPY's cached program: the second
+    loads its data while the first waits just before its solve (up to 0.5 s). Unlocked, the
+    first solved the second's problem (fuzz of 2026-11-29); each must get the weights its
+    problem gets alone."""
+    import threading
+
+    from fusion_opt.backends import cvxpy_backends
+
+    rng = np.random.default_rng(7)
+    problems = [(rng.standard_normal((4, 3)), instance(rng, 4, 3, "random")) for _ in range(2)]
+    alone = [fo.bci(m, P, "trace", "clarabel", polish=False).weights for m, P in problems]
+    assert not np.allclose(*alone, atol=1e-3)  # the mix-up would show
+    waiting, loaded = threading.Event(), threading.Event()
+    set_data, solve = cvxpy_backends.set_data, cvxpy_backends._solve
+
+    def late_set_data(prog, Ys, M):
+        set_data(prog, Ys, M)
+        if threading.current_thread().name == "second":
+            loaded.set()
+
+    def slow_solve(prog, solver, options):
+        if threading.current_thread().name == "first":
+            waiting.set()
+            loaded.wait(0.5)  # the second thread's data arrive here unless it is held off
+        solve(prog, solver, options)
+
+    monkeypatch.setattr(cvxpy_backends, "set_data", late_set_data)
+    monkeypatch.setattr(cvxpy_backends, "_solve", slow_solve)
+    out = {}
+
+    def fuse(k):
+        out[k] = fo.bci(*problems[k], "trace", "clarabel", polish=False).weights
+
+    first = threading.Thread(target=fuse, args=(0,), name="first")
+    second = threading.Thread(target=fuse, args=(1,), name="second")
+    first.start()
+    assert waiting.wait(30)
+    second.start()
+    first.join(60)
+    second.join(60)
+    for k in (0, 1):
+        np.testing.assert_array_equal(out[k], alone[k])

@@ -3,10 +3,17 @@
 Each solves the cached DPP program of `programs.py` on the scaled problem and maps the
 solver's status to weights or to `FusionSolverError`. Tolerances are tight; the Newton
 polish of `fusion.py` then takes the certificate to machine precision.
+
+One CVXPY solve at a time in a process (`_LOCK`): threads fusing problems of one shape
+share its cached program, and one thread's data overwrote another's parameters between
+`set_data` and the solve (fuzz of 2026-11-29: 17 of 80 results of 8 threads were another
+problem's weights); `warnings.catch_warnings`, around each solve, is not thread-safe
+either. The native backends and "clarabel-direct" keep no shared state and run unlocked.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 import warnings
 
@@ -24,10 +31,17 @@ SOLVERS = {
     "scs": (cp.SCS, ({"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000},)),
 }
 _OK = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}
+_LOCK = threading.Lock()
 
 
 def solve(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str) -> WeightSolution:
     """Ys (N, n, n), M (n, n) of a scaled problem; returns weights and solver stats."""
+    with _LOCK:  # the program's parameters hold this problem until its solve is read
+        return _solve_locked(backend, Ys, M, criterion)
+
+
+def _solve_locked(backend: str, Ys: np.ndarray, M: np.ndarray, criterion: str):
+    """`solve`, holding `_LOCK`."""
     N, n = Ys.shape[:2]
     solver, attempts = SOLVERS[backend]
     prog = program(n, N, criterion, solver)
