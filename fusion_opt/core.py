@@ -130,19 +130,14 @@ _NAMES = Names()
 
 
 def request(method, criterion, backend, args: dict) -> Request:
-    """Check the options by name (module docstring); nothing is computed yet."""
-    if not _plain(method, criterion, backend, args):  # the common case without a copy
-        args = {k: v for k, v in args.items() if v is not None}  # None: not given
-        if not _plain(method, criterion, backend, args):
-            return _request(method, criterion, backend, args)
-    return _plain_request(method, criterion, backend, args.get("polish", True))
-
-
-def _plain(method, criterion, backend, args: dict) -> bool:
-    """Options of plain types and no method argument but polish."""
-    return len(args) == ("polish" in args) and type(args.get("polish", True)) is bool \
-        and type(method) is str and type(criterion) is str \
-        and (backend is None or type(backend) is str)
+    """Check the options by name (module docstring); nothing is computed yet. Options of
+    plain types without a method argument but polish, the common case, are checked once
+    per option set (`_plain_request`); a None method argument is one not given."""
+    polish = args.get("polish", True)
+    if len(args) == ("polish" in args) and type(polish) is bool and type(method) is str \
+            and type(criterion) is str and (backend is None or type(backend) is str):
+        return _plain_request(method, criterion, backend, polish)
+    return _request(method, criterion, backend, {k: v for k, v in args.items() if v is not None})
 
 
 @functools.lru_cache(maxsize=256)
