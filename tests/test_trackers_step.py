@@ -164,3 +164,28 @@ def test_outputs_and_simulated_data_compare_by_identity():
         a, b = make(), make()
         assert a == a and hash(a) == hash(a)
         assert a != b and hash(a) != hash(b)  # equal contents, two objects
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_tracker_keeps_its_own_prior_when_the_caller_reuses_its_arrays(kind):
+    """fuzz8 2: KalmanFilter kept the caller's m0 and P0 as its state, RBMCDA a view of them
+    for every birth: refilling the caller's buffers after building the tracker changed
+    its steps."""
+    cfg = scenarios.Table2Config()
+    model, (m0, P0) = cfg.filter_model(), cfg.prior()
+    m0, P0 = np.array(m0, dtype=float), np.array(P0, dtype=float)
+
+    def build(m, P):
+        if kind == "kf":
+            return kalman.KalmanFilter(model, m, P)
+        if kind == "rbpf":
+            return rbpf.RBPF(model, m, P, rng=np.random.default_rng(5))
+        return rbmcda.RBMCDA(model, m, P, rng=np.random.default_rng(5), dt=cfg.dt,
+                             birth_prob=0.5)
+
+    reference, reused = build(m0.copy(), P0.copy()), build(m0, P0)
+    m0[:], P0[:] = 100.0, np.diag(np.full(len(m0), 1e-3))  # the caller's next prior
+    for scan in ([[0.3, 0.2]], [[0.31, 0.21], [2.0, -1.0]], []):
+        a, b = reference.step(scan), reused.step(scan)
+        np.testing.assert_array_equal(a.means, b.means)
+        np.testing.assert_array_equal(a.covs, b.covs)

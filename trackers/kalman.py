@@ -193,12 +193,15 @@ class FilterOutput:
 
 
 def check_prior(model: LinearGaussian, m0, P0):
+    """The checked prior m0 (n,), P0 (n, n) of a filter of `model`, as copies: a filter
+    keeps its own (fuzz8 2: KalmanFilter started from, and RBMCDA gave each new target,
+    whatever the caller's m0 and P0 held at the time, a caller reusing its buffers)."""
     if not isinstance(model, LinearGaussian):
         raise FusionInputError(
             f"model must be a trackers.models.LinearGaussian, got {type(model).__name__}")
     m0 = _checks.finite_array("m0", m0, shape=(model.n,))
     P0 = _checks.covariance("P0", P0, model.n)
-    return m0, P0
+    return m0.copy(), P0.copy()
 
 
 class KalmanFilter:
