@@ -219,23 +219,26 @@ def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
     if req.backend == "closed-form" and N != 2:
         raise FusionInputError(f"backend 'closed-form' fuses N = 2 nodes, got N = {N}")
     q, E = _detection(req, B, N, batch) if req.method == "mbci" else _unit_scales(B, N)
-    a = _Arrays.of(B, N, n)
-    if req.backend not in EXACT:
-        if req.method in rules.RULES:
-            _prepare(means, covs, q, E, a, names, batch)
-            return _compiled(req, means, covs, a, batch)
-        return _conic(req, means, covs, q, E, a, names, batch)
-    t0 = time.perf_counter()
-    code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
-                      a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
-    if code > 0:
-        raise _input_error(code, a.where, means, covs, names, batch, E)
-    # the certificate reported, which the status is decided on
-    if (a.stats[0, 2] if B == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
-        _rescue(req, means, covs, q, E, a)
-    if code < 0:
-        raise _overflow(a, batch)
-    return _ci_result(req, a, time.perf_counter() - t0, 0, batch)
+    a = _Arrays.take(B, N, n)
+    try:
+        if req.backend not in EXACT:
+            if req.method in rules.RULES:
+                _prepare(means, covs, q, E, a, names, batch)
+                return _compiled(req, means, covs, a, batch)
+            return _conic(req, means, covs, q, E, a, names, batch)
+        t0 = time.perf_counter()
+        code = fuse_exact(means, covs, q, E, req.trace, a.F, a.k, a.vertex, a.pnorm, a.where,
+                          a.W, a.rel, a.iters, a.mean, a.cov, a.stats)
+        if code > 0:
+            raise _input_error(code, a.where, means, covs, names, batch, E)
+        # the certificate reported, which the status is decided on
+        if (a.stats[0, 2] if B == 1 else a.stats[:, 2].max()) > OPTIMAL_RTOL:
+            _rescue(req, means, covs, q, E, a)
+        if code < 0:
+            raise _overflow(a, batch)
+        return _ci_result(req, a, time.perf_counter() - t0, 0, batch)
+    finally:
+        a.give_back()
 
 
 def _detection(req, B, N, batch):
@@ -279,21 +282,30 @@ class _Arrays:
         self.where = np.zeros(3, dtype=np.int64)
 
     @staticmethod
-    def of(B, N, n) -> _Arrays:
+    def take(B, N, n) -> _Arrays:
         """New arrays for a batch; for one problem, this thread's scratch arrays of that
         shape, reused since allocating them all costs as much as fusing a small problem,
-        with new output arrays W, mean and cov, which the result keeps."""
+        with new output arrays W, mean and cov, which the result keeps. They are out of
+        the thread's cache until `give_back`: a fusion that starts inside this one (a
+        signal handler's, or one an argument's __array__ makes) gets its own (fuzz8 3, 4:
+        it overwrote the arrays of the one it interrupted, which then returned its result)."""
         if B != 1:
             return _Arrays(B, N, n)
         try:
-            a = _THREAD.arrays[N, n]
+            a = _THREAD.arrays.pop((N, n))
         except (AttributeError, KeyError):
-            cache = _THREAD.__dict__.setdefault("arrays", {})
-            if len(cache) > 64:
-                cache.clear()
-            a = cache[N, n] = _Arrays(1, N, n)
+            a = _Arrays(1, N, n)
         a.W, a.mean, a.cov = np.empty((1, N)), np.empty((1, n)), np.empty((1, n, n))
         return a
+
+    def give_back(self) -> None:
+        """Return one problem's scratch arrays to this thread's cache (at most 64 shapes)."""
+        _, N, n, _ = self.F.shape
+        if len(self.F) == 1:
+            cache = _THREAD.__dict__.setdefault("arrays", {})
+            if len(cache) >= 64:
+                cache.clear()
+            cache[N, n] = self
 
 
 _THREAD = threading.local()
