@@ -54,8 +54,12 @@ def is_sequence(x) -> bool:
 
 def finite_real(x) -> float | None:
     """x as a float when it is a real number (`is_real`) whose float is finite, else None:
-    a numpy scalar, a Fraction or a Python int of any size is a real number, and one whose
-    float overflows (10**400) is refused, not crashed on."""
+    a numpy scalar, a 0-d array of integers or floats (as the trackers' scalar options and
+    fo.mbci's p_detect take one; a processing node's p_detect refused it, fuzz8), a Fraction
+    or a Python int of any size is a real number, and one whose float overflows (10**400)
+    is refused, not crashed on."""
+    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf":
+        x = x[()]  # its numpy scalar
     if not is_real(x):
         return None
     try:

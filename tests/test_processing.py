@@ -134,6 +134,22 @@ def test_mbci_uses_the_detection_of_the_sources_fused():
     np.testing.assert_allclose(fused.covs[0], bci.cov / s, rtol=1e-9)
 
 
+def test_scalar_options_take_0d_arrays_as_numbers():
+    """fuzz8: a processing node's p_detect, chi and threshold, and a time stamp, refused a
+    0-d array that fo.mbci's p_detect and the trackers' scalar options take."""
+    est = {s: fo.Estimates([[0.0, 0.0]], [np.diag([1.0, 2.0]) * (k + 1)], [7])
+           for k, s in enumerate("ab")}
+    plain = fo.ProcessingNode(["a", "b"], p_detect={"a": 0.6, "b": 0.9}, chi=0.5,
+                              threshold=1.0)
+    arrays = fo.ProcessingNode(["a", "b"], p_detect={"a": np.array(0.6), "b": np.array(0.9)},
+                               chi=np.array(0.5), threshold=np.array(1))
+    a, b = plain.step(est, time=2.5), arrays.step(est, time=np.array(2.5))
+    np.testing.assert_array_equal(a.covs, b.covs)
+    assert a.time == b.time == 2.5
+    with pytest.raises(fo.FusionInputError, match="p_detect of source 'a' must be a number"):
+        fo.ProcessingNode(["a"], p_detect={"a": np.array(True)}, chi=0.5, threshold=1.0)
+
+
 def test_groups_of_one_size_are_fused_in_one_batch(monkeypatch):
     calls = []
 
