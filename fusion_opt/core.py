@@ -325,7 +325,10 @@ _THREAD = threading.local()
 # "solve" alone 51.0 -> 40.7 s, but "assemble" 29.3 -> 34.6 and "fuse" 10.2 -> 14.7 (they
 # compile the inlined code again instead of linking its cached entry), and the paper
 # study's stages on a pool of two 85.5 against 86.2 s; inlining assemble's
-# `_vertex_or_interior`, `_vertex` and `_interior` as well made "fuse" 43 s.
+# `_vertex_or_interior`, `_vertex` and `_interior` as well made "fuse" 43 s. Tried on
+# 2026-11-29 and no faster: "network" in the first stage, after "assemble" (which now
+# takes about as long as "solve", 41-50 s each on a pool of two): the paper study's parts
+# 70.3 and 63.7 s against 68.1 and 59.0 s for these stages, in turns.
 KERNEL_STAGES = (("solve", "assemble", "cross", "pairs"), ("rules", "fuse", "conic", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
