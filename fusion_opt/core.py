@@ -209,10 +209,11 @@ def _shape_error(means, covs, batch: bool, names: Names) -> FusionInputError:
 
 def run(means, covs, req: Request, batch: bool, names: Names = _NAMES):
     """Fuse checked arrays (B, N, n), (B, N, n, n): a FusionResult (batch=False, B = 1) or
-    a BatchFusionResult. newton and closed-form are one compiled call, in line here (each
-    Python layer between a small fusion and its kernel cost about 1 us in a benchmark's
-    rotation, where the caches are cold); a problem whose certificate is not within
-    OPTIMAL_RTOL is tried again from Clarabel's weights (`_rescue`)."""
+    a BatchFusionResult. newton and closed-form are one compiled call, in line here; a
+    problem whose certificate is not within OPTIMAL_RTOL is tried again from Clarabel's
+    weights (`_rescue`). (The Python layers this path lost on 2026-11-29, `_exact` and an
+    output tuple unpacked by `_result`, cost a small fusion 6-11 % with the caches cold, as
+    in the backends benchmark's rotation.)"""
     B, N, n = means.shape
     if req.method in PAIR_METHODS and N != 2:
         raise FusionInputError(f"method {safe_repr(req.method)} fuses 2 nodes, got N = {N}")
@@ -483,9 +484,7 @@ _OPTIMAL_OR_NOT = np.array([Status.OPTIMAL, Status.OPTIMAL_INACCURATE], dtype=ob
 
 def _ci_result(req, a, solve_time, polish_iters, batch):
     """The result of ci, bci or mbci from a's arrays: one problem's objective, gap, status
-    and iterations read as plain numbers at once (without column views or an output
-    tuple: each layer between the kernel and the result cost a small fusion about 1 us
-    more in a benchmark's rotation, where the caches are cold)."""
+    and iterations read as plain numbers at once (without column views)."""
     if batch:
         status = _OPTIMAL_OR_NOT[(a.stats[:, 2] > OPTIMAL_RTOL).astype(np.intp)]
         return BatchFusionResult.owning(a.W, a.mean, a.cov, a.stats[:, 0], a.stats[:, 1],

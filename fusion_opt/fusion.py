@@ -6,10 +6,9 @@ on the simplex chosen to minimise tr P(w) ("trace") or log det P(w) ("logdet"):
     P(w)^-1 = sum_i w_i Y_i,      m(w) = P(w) sum_i w_i Y_i m_i.
 
 Each function checks its arguments once and hands them straight to the one fusion path of
-`core.py`, which `fuse_batch` shares (`bci` and `mbci` do not go through `fuse`: a Python
-layer costs a small fusion about 1 us when the caches are cold): exact prescaling, the
-weight solver, the polish of an inexact solver's weights, and the certificate of DESIGN §1
-at the returned weights.
+`core.py`, which `fuse_batch` shares (`bci` and `mbci` do not go through `fuse`: one
+Python layer less for a small fusion): exact prescaling, the weight solver, the polish of
+an inexact solver's weights, and the certificate of DESIGN §1 at the returned weights.
 The options and their defaults are listed once, in `core.py`'s docstring.
 """
 
