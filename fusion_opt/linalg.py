@@ -49,6 +49,7 @@ import contextlib
 import hashlib
 import logging
 import os
+import stat
 import uuid
 
 import numpy as np
@@ -142,14 +143,12 @@ def _cache_folder(py_file: str) -> str | None:
 
 
 def _refresh(cache: str, stamp: str) -> bool:
-    """Empty the numba files of `cache` unless its stamp is `stamp`; True if emptied."""
+    """Empty the numba files of `cache` unless its stamp is `stamp`; True if emptied. A
+    stamp that cannot be written is said once on the "fusion_opt" logger (the caches are
+    then dropped at every start)."""
     path = os.path.join(cache, _STAMP)
-    try:
-        with open(path) as f:
-            if f.read() == stamp:
-                return False
-    except OSError:
-        pass
+    if _read_stamp(path) == stamp:
+        return False
     try:
         names = os.listdir(cache)
     except OSError:
@@ -165,7 +164,11 @@ def _refresh(cache: str, stamp: str) -> bool:
         with open(tmp, "w") as f:
             f.write(stamp)
         os.replace(tmp, path)
-    except OSError:
+    except OSError as exc:
+        logging.getLogger("fusion_opt").warning(
+            "fusion_opt: cannot write the stamp of the kernel cache, %s (%s): its cached "
+            "kernels are dropped and compiled again at every start until it can be", path,
+            exc.strerror or exc)
         try:
             os.remove(tmp)
         except OSError:
@@ -173,8 +176,22 @@ def _refresh(cache: str, stamp: str) -> bool:
     return True
 
 
-def _at_level_2(decorator):
-    """`decorator` (an njit) whose kernels compile with LLVM's level 2 passes (module
+def _read_stamp(path: str) -> str | None:
+    """The stamp at path, or None: only a regular file is read, and only as much as a stamp
+    holds, as bytes (fuzz9: a FIFO there blocked the import, a link to /dev/zero filled
+    the memory, bytes that are not UTF-8 raised UnicodeDecodeError)."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        with open(path, "rb") as f:
+            return f.read(2 * hashlib.sha256().digest_size + 1).decode("ascii", "replace")
+    except OSError:
+        return None
+
+
+def _at_level_2(decorator, uncached):
+    """`decorator` (an njit with cache=True; `uncached`, the same without, where numba has
+    no folder to cache in) whose kernels compile with LLVM's level 2 passes (module
     docstring). numba reads the level, `numba.core.config.OPT`, each time it builds a
     pass manager, so it is set for the duration of a kernel's compile only, under numba's
     own (reentrant) compiler lock, which every compile holds: no other compile in the
@@ -187,7 +204,11 @@ def _at_level_2(decorator):
     run times equal)."""
 
     def decorate(fn):
-        kernel = decorator(fn)
+        try:
+            kernel = decorator(fn)
+        except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+            kernel = _uncached(uncached, fn, exc)
+        _guard_cache(kernel)
         compile_ = kernel.compile
 
         def compile(sig):
@@ -200,6 +221,57 @@ def _at_level_2(decorator):
         return kernel
 
     return decorate
+
+
+def _uncached(uncached, fn, exc):
+    """`fn` compiled without a disk cache where numba has no folder to cache it in (fuzz9: a
+    read-only install, HOME not writable, NUMBA_CACHE_DIR unset: the import raised numba's
+    RuntimeError); said once on the "fusion_opt" logger."""
+    if not _UNCACHED:
+        _UNCACHED.append(fn)
+        logging.getLogger("fusion_opt").warning(
+            "fusion_opt: numba cannot cache the kernels (%s): each process compiles them "
+            "again; set NUMBA_CACHE_DIR to a writable folder", exc)
+    return uncached(fn)
+
+
+_UNCACHED: list = []
+
+
+def _guard_cache(kernel) -> None:
+    """A damaged, unreadable or unwritable entry of numba's disk cache is a miss: the kernel
+    compiles again, and numba writes its entry afresh where it can (fuzz9: a truncated or
+    altered index or code file, or an unreadable one, made every fusion raise numba's
+    EOFError, UnpicklingError, PermissionError or LLVM parsing error, in every process);
+    so is an entry compiled from another function (code files swapped between kernels of
+    one signature were run as the kernel's). A damaged index is removed so that the new
+    entry can be written. numba checks no entry's content: a bit flipped inside compiled
+    code that still loads is run (README)."""
+    cache = getattr(kernel, "_cache", None)
+    if cache is None or not hasattr(cache, "load_overload"):
+        return
+    load, save = cache.load_overload, cache.save_overload
+    name = (kernel.py_func.__qualname__, kernel.py_func.__module__)
+
+    def load_overload(sig, target_context):
+        try:
+            data = load(sig, target_context)
+            fn = getattr(data, "fndesc", None)
+            if fn is None or (fn.qualname, fn.modname) == name:
+                return data
+        except Exception:  # noqa: BLE001, S110 (any failure to read an entry is a miss)
+            pass
+        index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
+        if index is not None:
+            with contextlib.suppress(OSError):
+                os.remove(index)
+        return None
+
+    def save_overload(sig, data):
+        with contextlib.suppress(Exception):  # not cached: the next process compiles it
+            save(sig, data)
+
+    cache.load_overload, cache.save_overload = load_overload, save_overload
 
 
 @contextlib.contextmanager
@@ -259,8 +331,13 @@ class _CompileNotice(_numba_event.Listener):
 
 NOTICE = _CompileNotice()
 _numba_event.register("numba:compile", NOTICE)
+# numba joins a relative NUMBA_CACHE_DIR to the folder current at each load: a program
+# that changed folder after the import loaded kernels the stale-cache check had not seen
+# (fuzz9); the folder of the import is the one both use.
+if _numba_config.CACHE_DIR and not os.path.isabs(_numba_config.CACHE_DIR):
+    _numba_config.CACHE_DIR = os.path.abspath(_numba_config.CACHE_DIR)
 drop_stale_caches(os.path.dirname(os.path.abspath(__file__)))
-jit = _at_level_2(njit(cache=True, error_model="numpy"))
+jit = _at_level_2(njit(cache=True, error_model="numpy"), njit(error_model="numpy"))
 # For a one-problem step of a batch loop that takes its ~30 work arrays one by one: a
 # compiled call passes each as a struct, and inlined into the loop (numba IR) the calls of
 # `newton.solve_one` and `assemble.assemble_one` cost 0.5 us a problem less at (4, 3).
@@ -270,7 +347,8 @@ jit = _at_level_2(njit(cache=True, error_model="numpy"))
 # cut the six parts of the paper study, compiled cold one after the other, from 67.2 and
 # 69.1 s of CPU to 62.6 and 65.3 (two runs each, in pairs on 2 cores); the tables and
 # `fo.bci`'s results are bit for bit the same, and as fast.
-inline = _at_level_2(njit(cache=True, error_model="numpy", inline="always"))
+inline = _at_level_2(njit(cache=True, error_model="numpy", inline="always"),
+                     njit(error_model="numpy", inline="always"))
 
 
 def row_norms(d: np.ndarray) -> np.ndarray:

@@ -216,9 +216,9 @@ class _Dispatcher:
 def test_kernels_compile_at_level_2_and_the_level_comes_back(monkeypatch):
     monkeypatch.delenv("NUMBA_OPT", raising=False)
     monkeypatch.setattr(numba.core.config, "OPT", type(numba.core.config.OPT)(3))
-    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    kernel = linalg._at_level_2(_Dispatcher, None)(lambda: None)
     assert kernel.compile("sig") == "sig"
-    failing = linalg._at_level_2(lambda fn: _Dispatcher(fn, fail=True))(lambda: None)
+    failing = linalg._at_level_2(lambda fn: _Dispatcher(fn, fail=True), None)(lambda: None)
     with pytest.raises(RuntimeError, match="typing failed"):
         failing.compile("sig")
     assert kernel.levels == [2] and failing.levels == [2]
@@ -228,7 +228,7 @@ def test_kernels_compile_at_level_2_and_the_level_comes_back(monkeypatch):
 def test_a_level_the_user_set_in_numba_opt_is_kept(monkeypatch):
     monkeypatch.setenv("NUMBA_OPT", "1")
     monkeypatch.setattr(numba.core.config, "OPT", type(numba.core.config.OPT)(1))
-    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    kernel = linalg._at_level_2(_Dispatcher, None)(lambda: None)
     kernel.compile("sig")
     assert kernel.levels == [1] and int(numba.core.config.OPT) == 1
 
@@ -237,7 +237,7 @@ def test_a_kernel_is_compiled_for_the_plain_types_of_constant_arguments():
     """A call from a kernel with a constant argument (types Literal[bool](True),
     Literal[int](0)) compiles the kernel for bool and int64, the types of the same call
     with variables, not a copy per constant."""
-    kernel = linalg._at_level_2(_Dispatcher)(lambda: None)
+    kernel = linalg._at_level_2(_Dispatcher, None)(lambda: None)
     kernel.compile((types.literal(True), types.literal(0), types.float64))
     kernel.compile((types.boolean, types.int64, types.float64))
     assert kernel.sigs == [(types.boolean, types.int64, types.float64)] * 2
@@ -301,3 +301,98 @@ def test_every_kernel_indexes_within_its_arrays(tmp_path):
                          cwd=root, env=env, capture_output=True, text=True, timeout=1800)
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
     assert " passed" in out.stdout.splitlines()[-1]
+
+
+@pytest.mark.parametrize("damage", ["bytes", "fifo", "endless", "folder"])
+def test_a_damaged_stamp_neither_fails_nor_blocks_the_import(tmp_path, damage, caplog):
+    """fuzz9: a stamp of bytes that are not UTF-8 raised UnicodeDecodeError at every import,
+    a FIFO there blocked it, a link to /dev/zero filled the memory; a folder there (which
+    cannot be replaced) dropped the caches at every start without a word."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "k.f-1.py311.nbi").write_bytes(b"cached")
+    stamp = cache / STAMP
+    if damage == "bytes":
+        stamp.write_bytes(b"\xff\xfe\x80garbage")
+    elif damage == "fifo":
+        os.mkfifo(stamp)
+    elif damage == "endless":
+        stamp.symlink_to("/dev/zero")
+    else:
+        stamp.mkdir()
+    assert linalg._refresh(str(cache), "a" * 64)  # a mismatch: dropped
+    assert not (cache / "k.f-1.py311.nbi").exists()
+    if damage == "folder":
+        assert "cannot write the stamp of the kernel cache" in caplog.text
+    else:
+        assert stamp.read_text() == "a" * 64 and not linalg._refresh(str(cache), "a" * 64)
+
+
+GUARDED = """
+    from fusion_opt.linalg import jit
+    @jit
+    def lower():
+        return 1
+    @jit
+    def upper():
+        return 2
+    def call():
+        return lower() * 10 + upper()
+"""
+
+
+def test_damaged_or_swapped_cache_entries_are_compiled_again(tmp_path):
+    """fuzz9: a truncated index or code file raised numba's EOFError or UnpicklingError at
+    every call, in every process, and code files swapped between two kernels of one
+    signature ran each other's code."""
+    root = tmp_path / "gpkg"
+    _write(root / "__init__.py", "")
+    _write(root / "two.py", GUARDED)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "NUMBA_CACHE_DIR": str(tmp_path / "nc")}
+    run = [sys.executable, "-c", "import gpkg.two; print(gpkg.two.call())"]
+
+    def call():
+        out = subprocess.run(run, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return int(out.stdout)
+
+    assert call() == 12
+    files = {p.name: p for p in (tmp_path / "nc").rglob("two.*.nb?")}
+    code = {k: sorted(p for n, p in files.items() if f"two.{k}-" in n and n.endswith(".nbc"))[0]
+            for k in ("lower", "upper")}
+    a, b = code["lower"].read_bytes(), code["upper"].read_bytes()
+    code["lower"].write_bytes(b)
+    code["upper"].write_bytes(a)
+    assert call() == 12  # swapped: each compiled again, not run as the other
+    index = sorted(p for n, p in files.items() if "two.lower-" in n and n.endswith(".nbi"))[0]
+    index.write_bytes(index.read_bytes()[:10])
+    assert call() == 12
+    assert call() == 12  # and cached again
+
+
+def test_without_a_cache_folder_the_kernels_compile_uncached(monkeypatch, caplog):
+    """fuzz9: a read-only install whose user has no writable HOME and no NUMBA_CACHE_DIR
+    could not import the package (numba's "cannot cache function ...: no locator
+    available" at every kernel's decoration)."""
+    def no_locator(fn):
+        raise RuntimeError(f"cannot cache function {fn.__name__!r}: no locator available")
+
+    monkeypatch.setattr(linalg, "_UNCACHED", [])
+
+    @linalg._at_level_2(no_locator, numba.njit(error_model="numpy"))
+    def twice(x):
+        return 2.0 * x
+
+    assert twice(1.5) == 3.0
+    assert "numba cannot cache the kernels" in caplog.text
+
+
+def test_a_relative_cache_folder_is_the_one_of_the_import(tmp_path):
+    """fuzz9: with a relative NUMBA_CACHE_DIR numba loads from the folder current at each
+    call; a program that changed folder after the import ran kernels the stale-cache check
+    had not looked at."""
+    code = "import fusion_opt, numba; print(numba.core.config.CACHE_DIR)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120,
+                         env={**os.environ, "NUMBA_CACHE_DIR": "rel"}, check=True)
+    assert out.stdout.strip() == str(tmp_path / "rel")
