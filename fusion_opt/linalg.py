@@ -144,8 +144,8 @@ def _cache_folder(py_file: str) -> str | None:
 
 def _refresh(cache: str, stamp: str) -> bool:
     """Empty the numba files of `cache` unless its stamp is `stamp`; True if emptied. A
-    stamp that cannot be written is said once on the "fusion_opt" logger (the caches are
-    then dropped at every start)."""
+    stamp that cannot be written is said on the "fusion_opt" logger (the caches are then
+    dropped at every start)."""
     path = os.path.join(cache, _STAMP)
     if _read_stamp(path) == stamp:
         return False
@@ -207,6 +207,8 @@ def _at_level_2(decorator, uncached):
         try:
             kernel = decorator(fn)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+            if "locator" not in str(exc):
+                raise
             kernel = _uncached(uncached, fn, exc)
         _guard_cache(kernel)
         compile_ = kernel.compile
