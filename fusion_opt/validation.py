@@ -52,14 +52,21 @@ def is_sequence(x) -> bool:
         and not (isinstance(x, np.ndarray) and x.ndim == 0)
 
 
-def finite_real(x) -> float | None:
-    """x as a float when it is a real number (`is_real`) whose float is finite, else None:
-    a numpy scalar, a 0-d array of integers or floats (as the trackers' scalar options and
-    fo.mbci's p_detect take one; a processing node's p_detect refused it, fuzz8), a Fraction
-    or a Python int of any size is a real number, and one whose float overflows (10**400)
-    is refused, not crashed on."""
+def scalar(x):
+    """x, or the numpy scalar of a 0-d array of integers or floats: a scalar option takes
+    one as the number it holds (fuzz8: a processing node's p_detect refused np.array(0.7),
+    which fo.mbci's p_detect and the trackers' options take)."""
     if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf":
-        x = x[()]  # its numpy scalar
+        return x[()]
+    return x
+
+
+def finite_real(x) -> float | None:
+    """x as a float when it is a real number (`is_real`, after `scalar`) whose float is
+    finite, else None: a numpy scalar, a 0-d array of integers or floats, a Fraction or a
+    Python int of any size is a real number, and one whose float overflows (10**400) is
+    refused, not crashed on."""
+    x = scalar(x)
     if not is_real(x):
         return None
     try:

@@ -40,8 +40,7 @@ def finite_array(name: str, value, ndim: int | None = None, shape=None) -> np.nd
 def real(name: str, value) -> float:
     """A real scalar (int, float or a 0-d real array), refusing None, strings, booleans and
     complex numbers; NaN and inf pass here (the callers say which range is allowed)."""
-    if not (_fo.is_real(value)
-            or (isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf")):
+    if not _fo.is_real(_fo.scalar(value)):
         raise FusionInputError(f"{name} must be a real number, got {_fo.safe_repr(value)}")
     return _fo.wide_float(value)  # an int past float64 (2**2000): +-inf, refused by range
 
