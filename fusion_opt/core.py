@@ -329,7 +329,14 @@ _THREAD = threading.local()
 # `_vertex_or_interior`, `_vertex` and `_interior` as well made "fuse" 43 s. Tried on
 # 2026-11-29 and no faster: "network" in the first stage, after "assemble" (which now
 # takes about as long as "solve", 41-50 s each on a pool of two): the paper study's parts
-# 70.3 and 63.7 s against 68.1 and 59.0 s for these stages, in turns.
+# 70.3 and 63.7 s against 68.1 and 59.0 s for these stages, in turns. Tried on 2026-11-29
+# (parts compiled cold, each in a process of its own, in turns) and not kept: LLVM's loop
+# unrolling off for the kernels ("solve", "assemble", "fuse" 92.9 -> 71.7 s of CPU, but
+# `fuse_exact` 1.5 times slower from (4, 3) to (12, 7)); an inlining threshold of 75 or 25
+# instead of level 2's (the eight parts 128.5, 123.5 s against 126.5, 128.7 and 115.0,
+# 132.7: the machine's noise); `factored.improvement` and `_formed_gap` as kernels of
+# their own instead of inlined ("assemble" 43.4, 44.4 -> 50.7, 47.4 s: each is then
+# optimised and emitted again in every kernel up its chain of callers).
 KERNEL_STAGES = (("solve", "assemble", "cross", "pairs"), ("rules", "fuse", "conic", "network"))
 KERNEL_PARTS = tuple(part for stage in KERNEL_STAGES for part in stage)
 
