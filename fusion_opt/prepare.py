@@ -28,10 +28,11 @@ from .linalg import cholesky, inline, jit, lower_inverse, pow2
 
 SYMMETRY_RTOL = 1e-8
 MAX_SPREAD_BITS = 1900
-# A covariance whose condition estimate |P|_F |P^-1|_F (>= its condition, <= n^1.5 times
-# it) is above this is refused as numerically singular: a rank-deficient covariance passes
-# a Cholesky with pivots of rounding size, 1 to 100 eps of its diagonal, and such a node
-# made the rules' inverses fail and the fused covariance singular.
+# A covariance whose condition estimate |P|_F tr(P^-1) = |P|_F |C^-1|_F^2 (C C^T = P; at
+# least its condition, at most n^1.5 times it) is above this is refused as numerically
+# singular: a rank-deficient covariance passes a Cholesky with pivots of rounding size, 1
+# to 100 eps of its diagonal, and such a node made the rules' inverses fail and the fused
+# covariance singular.
 MAX_CONDITION = 2.0**46  # 7.0e13; condition 1e12 passes up to n = 16 at worst, any n typically
 
 OK, MEANS_NONFINITE, COVS_NONFINITE, ASYMMETRIC, NOT_PD, SPREAD = range(6)
@@ -160,7 +161,7 @@ def _factor(P, q, shift, S, C, F_out, vertex_out) -> float:
         for l in range(j + 1):
             if not np.isfinite(F_out[j, l]):
                 return 0.0
-            inverse2 += F_out[j, l] * F_out[j, l]  # |P^-1|_F <= |C^-1|_F^2
+            inverse2 += F_out[j, l] * F_out[j, l]  # |C^-1|_F^2 = tr(P^-1)
     if not norm * inverse2 <= MAX_CONDITION:
         return 0.0
     vertex_out[0], vertex_out[1] = trace, logdet

@@ -285,28 +285,40 @@ def check_spd(covs: np.ndarray, name: str = "covs", item: str = "node",
 
 def definiteness_error(label: str, S: np.ndarray) -> FusionInputError:
     """Why the symmetric S (n, n), which failed a Cholesky factorisation or the condition
-    limit, is refused, from its extreme eigenvalues, computed on S scaled by the power of
-    two of its largest entry (exact: entries near 1e308 or subnormal stay in range): not
-    positive definite where the smallest is negative beyond n eps of the largest;
-    numerically singular where it is 0 or negative within that (eigenvalues 1e-300 and
-    1e300, the smallest computed as 0, were reported as "not positive definite", fuzz I6)
-    or positive with a condition beyond the limit."""
+    limit, is refused, from its eigenvalues, computed on S scaled by the power of two of
+    its largest entry (exact: entries near 1e308 or subnormal stay in range): not positive
+    definite where the smallest is negative beyond n eps of the largest; numerically
+    singular where it is 0 or negative within that (eigenvalues 1e-300 and 1e300, the
+    smallest computed as 0, were reported as "not positive definite", fuzz I6), or
+    positive with the condition estimate of `prepare._factor`, |P|_F tr(P^-1), near or
+    above MAX_CONDITION (said with its value: the message named |P|_F |P^-1|_F, up to
+    sqrt(n) times smaller, and a covariance at 5e13 by that measure was refused "above
+    7.04e13", soak 1), or else a failed Cholesky factorisation."""
     e = int(np.frexp(np.abs(S).max())[1])
     with np.errstate(all="ignore"):
-        eig = np.ldexp(np.linalg.eigvalsh(np.ldexp(S, -e)), e)
+        unit = np.linalg.eigvalsh(np.ldexp(S, -e))
+        eig = np.ldexp(unit, e)
     lo, hi, tol = eig[0], eig[-1], len(eig) * np.finfo(float).eps * eig[-1]
     if not hi > 0.0 or lo < -tol:
         return FusionInputError(f"{label} is not positive definite (smallest eigenvalue "
                                 f"{lo:.3g})")
-    if lo <= 0.0:
+    if lo <= 0.0 or not unit[0] > 0.0:
         return FusionInputError(f"{label} is numerically singular: its smallest eigenvalue, "
                                 f"{lo:.3g}, is within float64's rounding of 0 beside its "
                                 f"largest, {hi:.3g}")
-    return FusionInputError(
-        f"{label} is numerically singular: eigenvalues {lo:.3g} to {hi:.3g} (condition "
-        f"{hi / lo:.3g}); a covariance is refused above a condition estimate "
-        f"|P|_F |P^-1|_F of {MAX_CONDITION:.3g}, where its Cholesky pivots are of rounding "
-        "size")
+    # the estimate is scale-free: from the scaled eigenvalues, which do not overflow
+    with np.errstate(over="ignore", divide="ignore"):
+        estimate = float(np.sqrt(np.sum(unit * unit)) * np.sum(1.0 / unit))
+    if estimate > 0.9 * MAX_CONDITION:  # its rounding here is about eps times it
+        shown = f"{estimate:.3g}" if estimate < np.inf else "beyond float64's range"
+        why = (f"its condition estimate |P|_F tr(P^-1), {shown}, is "
+               f"{'above' if estimate > MAX_CONDITION else 'at'} the limit "
+               f"{MAX_CONDITION:.3g}, beyond which a singular covariance passes a Cholesky "
+               "factorisation with pivots of rounding size")
+    else:
+        why = "its Cholesky factorisation fails (pivots of rounding size)"
+    return FusionInputError(f"{label} is numerically singular: eigenvalues {lo:.3g} to "
+                            f"{hi:.3g} (condition {hi / lo:.3g}); {why}")
 
 
 _ASYMMETRIC, _NOT_PD = 1, 2

@@ -11,6 +11,7 @@ from conftest import random_instance
 import fusion_opt as fo
 from fusion_opt import core
 from fusion_opt.backends import newton
+from fusion_opt.prepare import MAX_CONDITION
 
 MEANS, COVS = random_instance(np.random.default_rng(0), 3, 4)
 P = [0.9, 0.6, 0.8, 0.7]
@@ -302,6 +303,29 @@ def test_a_node_of_condition_beyond_the_limit_is_refused_at_once():
     with pytest.raises(fo.FusionInputError,
                        match=r"covs of node 0 is numerically singular: eigenvalues 1e-300 to 1"):
         fo.bci(np.zeros((1000, 3)), covs)
+
+
+def test_the_condition_limit_is_said_as_it_is_applied():
+    """Soak 1: prepare refuses a covariance by |P|_F tr(P^-1) (the squared Frobenius norm
+    of its inverse Cholesky factor), but the message and README named |P|_F |P^-1|_F,
+    up to sqrt(n) times smaller: eigenvalues (1, l, l, l) at 5e13 by that measure (a noise-
+    free Kalman filter's covariance after 4,322 steps) were refused "above 7.04e13". The
+    message gives the estimate applied, against one computed here from numpy's inverse."""
+    lam = np.sqrt(3.0) / 5e13
+    Q = np.linalg.qr(np.random.default_rng(4).standard_normal((4, 4)))[0]
+    P = (Q * [1.0, lam, lam, lam]) @ Q.T
+    P = 0.5 * (P + P.T)
+    inverse = np.linalg.inv(P)
+    assert np.linalg.norm(P) * np.linalg.norm(inverse) < MAX_CONDITION
+    applied = np.linalg.norm(P) * np.trace(inverse)
+    assert applied > 1.1 * MAX_CONDITION
+    with pytest.raises(fo.FusionInputError, match=r"covs of node 1 is numerically singular") \
+            as info:
+        fo.bci(np.zeros((2, 4)), np.array([np.eye(4), P]))
+    said = re.search(r"\|P\|_F tr\(P\^-1\), (\S+), is above the limit 7\.04e\+13",
+                     str(info.value))
+    assert said is not None, str(info.value)
+    assert float(said.group(1)) == pytest.approx(applied, rel=0.05)
 
 
 def test_a_refused_covariance_is_called_singular_or_indefinite_as_it_is():
