@@ -378,6 +378,11 @@ class StoneSoupTracker:
     seconds from `epoch` and node is `node`. `ndim` is the state dimension n (reported even on
     a step without tracks). State components keep Stone Soup's order. A step past the end of
     the iterable raises StopIteration.
+
+    `track_ids` keeps every Stone Soup id it has seen, so that an id stays persistent and
+    maps back however long its track was away: about 170 bytes per track ever seen (soak of
+    2026-11-29: 40,000 steps of 5 tracks alive, one new every 2 steps, 84 B a step). A Stone
+    Soup Track keeps every state it was given, which grows faster unless its tracker trims it.
     """
 
     def __init__(self, tracker, ndim: int, *, epoch: datetime = EPOCH,
