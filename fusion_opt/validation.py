@@ -309,7 +309,7 @@ def definiteness_error(label: str, S: np.ndarray) -> FusionInputError:
     # the estimate is scale-free: from the scaled eigenvalues, which do not overflow
     with np.errstate(over="ignore", divide="ignore"):
         estimate = float(np.sqrt(np.sum(unit * unit)) * np.sum(1.0 / unit))
-    if estimate > 0.9 * MAX_CONDITION:  # its rounding here is about eps times it
+    if estimate > 0.9 * MAX_CONDITION:  # its rounding here, n eps cond, is a few % there
         shown = f"{estimate:.3g}" if estimate < np.inf else "beyond float64's range"
         why = (f"its condition estimate |P|_F tr(P^-1), {shown}, is "
                f"{'above' if estimate > MAX_CONDITION else 'at'} the limit "
