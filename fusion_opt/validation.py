@@ -302,12 +302,12 @@ def definiteness_error(label: str, S: np.ndarray) -> FusionInputError:
     if not hi > 0.0 or lo < -tol:
         return FusionInputError(f"{label} is not positive definite (smallest eigenvalue "
                                 f"{lo:.3g})")
-    if lo <= 0.0 or not unit[0] > 0.0:
+    if lo <= 0.0:  # else every eigenvalue, scaled or not, is positive
         return FusionInputError(f"{label} is numerically singular: its smallest eigenvalue, "
                                 f"{lo:.3g}, is within float64's rounding of 0 beside its "
                                 f"largest, {hi:.3g}")
     # the estimate is scale-free: from the scaled eigenvalues, which do not overflow
-    with np.errstate(over="ignore", divide="ignore"):
+    with np.errstate(over="ignore"):  # 1 / a subnormal eigenvalue
         estimate = float(np.sqrt(np.sum(unit * unit)) * np.sum(1.0 / unit))
     if estimate > 0.9 * MAX_CONDITION:  # its rounding here, n eps cond, is a few % there
         shown = f"{estimate:.3g}" if estimate < np.inf else "beyond float64's range"
