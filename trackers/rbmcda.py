@@ -37,8 +37,11 @@ Per step (time t_k = (k + 1) dt; the prior state is at time 0):
    (``trackers.resampling.end_of_step``).
 
 Vectorisation: targets are padded into arrays (N, C, n), (N, C, n, n) with an alive mask
-(N, C); C grows (doubles) when a particle needs a new slot. All steps above are array
-operations over particles and slots; there is no Python loop over particles.
+(N, C); C grows (doubles) when a particle needs a new slot. Steps 1, 2 and 4 are array
+operations over particles and slots; step 3 is one compiled call per measurement
+(`_association`, numba) that loops over the particles and their alive targets: its
+Kalman algebra is `trackers.kalman`'s (its numpy form is the tests' reference), in about
+a twentieth of the numpy calls' time (the call's arrays are d x d and n x n).
 
 Track extraction (the per-step output): take the particle with the largest weight after
 the step's updates (the MAP association hypothesis); its alive targets are the reported
@@ -62,11 +65,14 @@ from scipy.special import gammaincc
 
 from fusion_opt import FusionInputError
 from fusion_opt.estimates import Estimates
+from fusion_opt.linalg import jit
 from fusion_opt.validation import safe_repr, wide_float
 from trackers import _checks, kalman
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
 from trackers.resampling import end_of_step
+
+_LOG_2PI = np.log(2.0 * np.pi)
 
 
 class Track(NamedTuple):
@@ -218,44 +224,20 @@ def deaths(alive, tau, t_prev: float, t: float, shape: float, scale: float, u) -
     return alive & ~(u * survival(t_prev - tau, shape, scale) < survival(t - tau, shape, scale))
 
 
-def _event_log_joint(alive, rows, cols, ll, p: RBMCDAParams) -> np.ndarray:
-    """log(prior x likelihood) (N, C + 2) of each particle's events for one measurement:
-    clutter, birth, then the target in slot c (-inf where slot c is dead). ll (K + 1,) holds
-    the log-likelihoods of the K alive targets (at rows, cols) and of the birth prior."""
-    N, C = alive.shape
-    K = rows.size
-    n_alive = np.bincount(rows, minlength=N)
-    log_joint = np.full((N, C + 2), -np.inf)
-    log_joint[:, :2] = p.log_clutter_birth[(n_alive == 0).view(np.int8)]
-    log_joint[:, 1] += ll[K]
-    log_joint[rows, cols + 2] = ll[:K] + (p.log_target - np.log(np.maximum(n_alive, 1)))[rows]
-    return log_joint
-
-
-def _draw(log_joint: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
-    """One event per row of log_joint (N, E), drawn with probability proportional to
-    exp(log_joint) by inverse CDF, and the rows' log-normalisers log sum exp (N,).
-    A row with no possible event (all -inf) gets -inf (its particle weight 0)."""
-    peak = log_joint.max(axis=1)
-    peak[peak == -np.inf] = 0.0
-    cdf = np.cumsum(np.exp(log_joint - peak[:, None]), axis=1)
-    with np.errstate(divide="ignore"):
-        log_norm = peak + np.log(cdf[:, -1])
-    u = rng.random(log_joint.shape[0]) * cdf[:, -1]
-    return np.minimum((cdf < u[:, None]).sum(axis=1), log_joint.shape[1] - 1), log_norm
-
-
 def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) -> RBMCDAState:
     """Process one measurement y (d,) at time t for all particles (module docstring, step
-    3). Writes into the state's arrays, which the caller owns."""
-    # The Kalman filters in play: the K alive targets, then the birth prior (index K).
-    rows, cols = s.alive.nonzero()
-    K = rows.size
-    m = np.concatenate([s.M[rows, cols], p.m0[None]])
-    P = np.concatenate([s.P[rows, cols], p.P0[None]])
-    v, S, PHt = kalman.innovation(m, P, y, p.model.H, p.model.R)
-    log_joint = _event_log_joint(s.alive, rows, cols, kalman.innovation_loglik(v, S), p)
-    choice, log_pred = _draw(log_joint, rng)
+    3): the events' log-joints, the draw and the Kalman updates in one compiled call
+    (`_association`), the births' slots here. Writes into the state's arrays, which the
+    caller owns. The draw's uniforms (N,) are taken from rng first."""
+    u = rng.random(s.alive.shape[0])
+    ok, choice, log_pred, m_new, P_new = _association(
+        s.alive, s.M, s.P, p.m0, p.P0, p.model.H, p.model.R, np.ascontiguousarray(y),
+        p.log_clutter_birth, p.log_target, u)
+    if not ok:
+        raise FusionInputError(
+            f"measurement y = {y.tolist()}: the innovation covariance H P H^T + R of a target "
+            "or of the birth prior is not positive definite in float64 (a model and prior at "
+            "float64's limits)")
     if log_pred.max() == -np.inf:
         raise FusionInputError(
             f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
@@ -266,22 +248,197 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
             f"measurement y = {y.tolist()} leaves every particle with weight 0: no particle "
             "explains all of this scan's measurements")
     s = s._replace(logw=s.logw + log_pred)
-
-    # one Kalman update for every particle that chose a target or a birth
-    r = np.flatnonzero(choice)
+    r = np.flatnonzero(choice)  # the particles that chose a target or a birth
     if r.size == 0:
         return s
-    index = np.full(log_joint.shape, K)  # event -> filter; clutter is never looked up
-    index[rows, cols + 2] = np.arange(K)
-    j = index[r, choice[r]]
-    m_new, P_new = kalman.update_innovation(m[j], P[j], v[j], S[j], PHt[j], p.model.H,
-                                          p.model.R)
     c = choice[r] - 2
     born = c < 0
     if born.any():
         s, c[born] = _births(s, r[born], p)
-    s.M[r, c], s.P[r, c], s.tau[r, c] = m_new, P_new, t
+    s.M[r, c], s.P[r, c], s.tau[r, c] = m_new[r], P_new[r], t
     return s
+
+
+@jit
+def _association(alive, M, P, m0, P0, H, R, y, table, log_target: float, u):
+    """One measurement y (d,) for every particle: alive (N, C), M (N, C, n), P (N, C, n, n),
+    the birth prior m0 (n,), P0 (n, n), the model's H (d, n) and R (d, d), the events'
+    log-priors table (2, 2) and log_target (RBMCDAParams), and uniforms u (N,). Each
+    particle's events, clutter, birth and the target in slot c, have the log-joints
+    log(prior x likelihood); one is drawn by inverse CDF with u and the log-normaliser
+    log sum exp is the particle's log predictive likelihood (-inf where no event is
+    possible). Returns (ok, choice (N,): 0 clutter, 1 birth, 2 + c slot c; log_pred (N,);
+    m_new (N, n), P_new (N, n, n): the chosen filter's Kalman update (Joseph's form,
+    symmetrised), in the rows whose choice is not clutter); ok is False where an innovation
+    covariance has no Cholesky factor."""
+    N, C, n = M.shape
+    d = y.size
+    choice, log_pred = np.zeros(N, dtype=np.int64), np.empty(N)
+    m_new, P_new = np.empty((N, n)), np.empty((N, n, n))
+    PHt, S, L, v, z = np.empty((n, d)), np.empty((d, d)), np.empty((d, d)), np.empty(d), np.empty(d)
+    lj, cdf = np.empty(C + 2), np.empty(C + 2)
+    m0, P0 = m0.copy(), P0.copy()  # writable, as the slots' views: one compiled type
+    ll_birth, ok = _log_likelihood(m0, P0, H, R, y, PHt, S, L, v, z)
+    if not ok:
+        return False, choice, log_pred, m_new, P_new
+    for i in range(N):
+        T = 0
+        for c in range(C):
+            T += alive[i, c]
+        row = 1 if T == 0 else 0  # no target to pick: birth and clutter renormalised
+        lj[0], lj[1] = table[row, 0], table[row, 1] + ll_birth
+        share = log_target - np.log(max(T, 1))
+        for c in range(C):
+            lj[2 + c] = -np.inf
+            if alive[i, c]:
+                ll, ok = _log_likelihood(M[i, c], P[i, c], H, R, y, PHt, S, L, v, z)
+                if not ok:
+                    return False, choice, log_pred, m_new, P_new
+                lj[2 + c] = ll + share
+        choice[i], log_pred[i] = _draw(lj, u[i], cdf)
+        e = choice[i]
+        if e == 1:
+            _update(m0, P0, H, R, y, PHt, S, L, v, m_new[i], P_new[i])
+        elif e >= 2:
+            _update(M[i, e - 2], P[i, e - 2], H, R, y, PHt, S, L, v, m_new[i], P_new[i])
+    return True, choice, log_pred, m_new, P_new
+
+
+@jit
+def _draw(lj, u: float, cdf):
+    """(event, log sum exp(lj)) for log-joints lj (E,): the event drawn with probability
+    proportional to exp(lj) by inverse CDF at u in [0, 1); event E - 1 and -inf where every
+    lj is -inf."""
+    E = lj.size
+    peak = -np.inf
+    for e in range(E):
+        peak = max(peak, lj[e])
+    if peak == -np.inf:
+        peak = 0.0
+    total = 0.0
+    for e in range(E):
+        total += np.exp(lj[e] - peak)
+        cdf[e] = total
+    at, event = u * total, 0
+    for e in range(E):
+        event += cdf[e] < at
+    return min(event, E - 1), peak + np.log(total)
+
+
+@jit
+def _innovation(m, P, H, R, y, PHt, S, v) -> None:
+    """v = y - H m (d,), S = H P H^T + R (d, d), PHt = P H^T (n, d)."""
+    n, d = m.size, y.size
+    for a in range(n):
+        for b in range(d):
+            t = 0.0
+            for k in range(n):
+                t += P[a, k] * H[b, k]
+            PHt[a, b] = t
+    for a in range(d):
+        for b in range(d):
+            t = 0.0
+            for k in range(n):
+                t += H[a, k] * PHt[k, b]
+            S[a, b] = t + R[a, b]
+        t = 0.0
+        for k in range(n):
+            t += H[a, k] * m[k]
+        v[a] = y[a] - t
+
+
+@jit
+def _cholesky(S, L) -> bool:
+    """The lower Cholesky factor L of S (d, d); False where a pivot is not positive."""
+    d = S.shape[0]
+    for j in range(d):
+        s = S[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:  # also NaN
+            return False
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, d):
+            t = S[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    return True
+
+
+@jit
+def _log_likelihood(m, P, H, R, y, PHt, S, L, v, z):
+    """(log N(y; H m, S), ok) with S = H P H^T + R, by its Cholesky factor; -inf where the
+    squared Mahalanobis distance overflows. Leaves v, S, PHt and L in the buffers."""
+    _innovation(m, P, H, R, y, PHt, S, v)
+    if not _cholesky(S, L):
+        return -np.inf, False
+    d = y.size
+    maha, logdet = 0.0, 0.0
+    for a in range(d):
+        t = v[a]
+        for k in range(a):
+            t -= L[a, k] * z[k]
+        z[a] = t / L[a, a]
+        maha += z[a] * z[a]
+        logdet += np.log(L[a, a])
+    return -0.5 * (maha + 2.0 * logdet + d * _LOG_2PI), True
+
+
+@jit
+def _update(m, P, H, R, y, PHt, S, L, v, m_out, P_out) -> None:
+    """The Kalman update of (m (n,), P (n, n)) with y into m_out, P_out (Joseph's form,
+    `trackers.kalman`), its gain from the Cholesky factor of S. v, S, PHt and L are made
+    again for this filter: the buffers hold those of the last filter `_log_likelihood`
+    saw, and the same arithmetic gives the same numbers."""
+    n, d = m.size, y.size
+    _innovation(m, P, H, R, y, PHt, S, v)
+    _cholesky(S, L)  # succeeded in `_log_likelihood` for the same numbers
+    Kt, w = np.empty((d, n)), np.empty(d)
+    for col in range(n):  # Kt = S^-1 (P H^T)^T: L w = PHt[col], then L^T Kt[:, col] = w
+        for a in range(d):
+            t = PHt[col, a]
+            for k in range(a):
+                t -= L[a, k] * w[k]
+            w[a] = t / L[a, a]
+        for a in range(d - 1, -1, -1):
+            t = w[a]
+            for k in range(a + 1, d):
+                t -= L[k, a] * Kt[k, col]
+            Kt[a, col] = t / L[a, a]
+    for k in range(n):
+        t = m[k]
+        for a in range(d):
+            t += v[a] * Kt[a, k]
+        m_out[k] = t
+    IKH, T1 = np.empty((n, n)), np.empty((n, n))
+    for a in range(n):  # I - K H, K = Kt^T
+        for b in range(n):
+            t = 1.0 if a == b else 0.0
+            for c in range(d):
+                t -= Kt[c, a] * H[c, b]
+            IKH[a, b] = t
+    for a in range(n):  # (I - K H) P
+        for b in range(n):
+            t = 0.0
+            for k in range(n):
+                t += IKH[a, k] * P[k, b]
+            T1[a, b] = t
+    for a in range(n):  # (I - K H) P (I - K H)^T + K R K^T
+        for b in range(n):
+            t = 0.0
+            for k in range(n):
+                t += T1[a, k] * IKH[b, k]
+            kr = 0.0
+            for c in range(d):
+                r = 0.0
+                for e in range(d):
+                    r += Kt[e, a] * R[e, c]
+                kr += r * Kt[c, b]
+            P_out[a, b] = t + kr
+    for a in range(n):
+        for b in range(a):
+            P_out[a, b] = P_out[b, a] = 0.5 * (P_out[a, b] + P_out[b, a])
 
 
 def _births(s: RBMCDAState, b: np.ndarray, p: RBMCDAParams):
