@@ -39,9 +39,10 @@ Per step (time t_k = (k + 1) dt; the prior state is at time 0):
 Vectorisation: targets are padded into arrays (N, C, n), (N, C, n, n) with an alive mask
 (N, C); C grows (doubles) when a particle needs a new slot. Steps 1, 2 and 4 are array
 operations over particles and slots; step 3 is one compiled call per measurement
-(`_association`, numba) that loops over the particles and their alive targets: its
-Kalman algebra is `trackers.kalman`'s (its numpy form is the tests' reference), in about
-a twentieth of the numpy calls' time (the call's arrays are d x d and n x n).
+(`_association`, numba) that loops over the particles and their alive targets, with
+`trackers.kalman`'s algebra (its numpy form is the tests' reference): over Table 2's
+scans at 20 particles, 81-95 us a measurement amid a step against 309-388 for the numpy
+calls on the same arrays, of d x d and n x n matrices (2026-11-29).
 
 Track extraction (the per-step output): take the particle with the largest weight after
 the step's updates (the MAP association hypothesis); its alive targets are the reported
