@@ -81,25 +81,42 @@ _ORGQR = _numba_types.ExternalFunction(
 _POTRF = _numba_types.ExternalFunction("numba_xxpotrf", _INT(_CHAR, _CHAR, _INTP, _F64P, _INTP))
 
 
-def drop_stale_caches(root: str) -> list[str]:
-    """Drop numba's cached kernels of the package at `root` where its kernel sources
-    changed; returns the cache folders emptied.
+def drop_stale_caches(root: str, *linked: str) -> list[str]:
+    """Drop numba's cached kernels of the package at `root` where its kernel sources, or
+    those of the packages at `linked` whose kernels its kernels call (`trackers` calls
+    this package's), changed; returns the cache folders emptied (root's only).
 
-    The hash covers every .py file under root that contains "@jit" or "@inline" (path and
-    bytes; sha256). Each source folder's kernels are cached where numba's own locators put them
-    (asked in numba's order, so the same folder numba uses): in-tree `__pycache__` when it
-    is writable, else the user-wide cache (~/.cache/numba/<folder>_<hash of its path>), or
-    NUMBA_CACHE_DIR when set. The stamp lives in that same folder, so a read-only install
-    is covered too: its caches live in the user-wide folder, and since numba stamps a file
-    by the hash of its content, a pip upgrade that changes `newton.py` but not `exact.py`
-    would otherwise leave `fuse_exact` stale there. Nothing here may fail an import: a
-    folder that cannot be read or written is skipped (numba does not use it either).
-    Processes starting at once may both drop the caches (one recompiles for nothing);
-    numba writes its files by os.replace and treats a vanished one as a miss, and the
-    stamp is written the same way, so none can read a half-written file. Not covered: a
-    process still running code imported before the edit, which may cache a kernel
-    compiled from the old sources under the new stamp."""
-    digest, folders = hashlib.sha256(), {}
+    The hash covers every .py file under root and each linked root that contains "@jit"
+    or "@inline" (path and bytes; sha256). Each source folder's kernels are cached where
+    numba's own locators put them (asked in numba's order, so the same folder numba
+    uses): in-tree `__pycache__` when it is writable, else the user-wide cache
+    (~/.cache/numba/<folder>_<hash of its path>), or NUMBA_CACHE_DIR when set. The stamp
+    lives in that same folder, so a read-only install is covered too: its caches live in
+    the user-wide folder, and since numba stamps a file by the hash of its content, a pip
+    upgrade that changes `newton.py` but not `exact.py` would otherwise leave `fuse_exact`
+    stale there. Nothing here may fail an import: a folder that cannot be read or written
+    is skipped (numba does not use it either). Processes starting at once may both drop
+    the caches (one recompiles for nothing); numba writes its files by os.replace and
+    treats a vanished one as a miss, and the stamp is written the same way, so none can
+    read a half-written file. Not covered: a process still running code imported before
+    the edit, which may cache a kernel compiled from the old sources under the new stamp."""
+    digest = hashlib.sha256()
+    folders = _kernel_sources(root, digest)
+    for other in linked:
+        digest.update(b"\1")  # root's files and each linked package's apart
+        _kernel_sources(other, digest)
+    stamp = digest.hexdigest()
+    dropped = []
+    for cache in dict.fromkeys(map(_cache_folder, folders.values())):
+        if cache is not None and _refresh(cache, stamp):
+            dropped.append(cache)
+    return dropped
+
+
+def _kernel_sources(root: str, digest) -> dict[str, str]:
+    """Hashes into digest the path (from root) and bytes of every .py file under root
+    containing "@jit" or "@inline"; returns {folder: one such file} of their folders."""
+    folders = {}
     for folder, subdirs, files in os.walk(root):
         subdirs[:] = sorted(d for d in subdirs if d != "__pycache__")
         for name in sorted(files):
@@ -115,12 +132,7 @@ def drop_stale_caches(root: str) -> list[str]:
                 digest.update(os.path.relpath(path, root).encode() + b"\0")
                 digest.update(hashlib.sha256(data).digest())
                 folders.setdefault(folder, path)
-    stamp = digest.hexdigest()
-    dropped = []
-    for cache in dict.fromkeys(map(_cache_folder, folders.values())):
-        if cache is not None and _refresh(cache, stamp):
-            dropped.append(cache)
-    return dropped
+    return folders
 
 
 def _cache_folder(py_file: str) -> str | None:

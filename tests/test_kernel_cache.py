@@ -66,6 +66,26 @@ def test_a_changed_kernel_source_drops_every_cache_and_an_unchanged_tree_keeps_i
     assert not list(root.rglob("*.tmp"))
 
 
+def test_a_changed_kernel_of_a_linked_package_drops_the_callers_cache(tmp_path, monkeypatch):
+    """A package whose kernels call another's (trackers' RBMCDA calls fusion_opt's
+    Cholesky) names it as linked: an edit of the other's kernels drops the caller's cache
+    (its cached code embeds them), and only the caller's."""
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    root, lib = _tree(tmp_path), tmp_path / "lib"
+    _write(lib / "la.py", "@jit\ndef h():\n    return 4\n")
+    lib_cache = lib / "__pycache__" / "la.h-1.py311.nbi"
+    lib_cache.parent.mkdir()
+    lib_cache.write_bytes(b"cached")
+    assert linalg.drop_stale_caches(str(root), str(lib))  # no stamp yet
+    files, _ = _fake_cache(root)
+    assert linalg.drop_stale_caches(str(root), str(lib)) == []  # neither changed: kept
+    (lib / "la.py").write_text("@jit\ndef h():\n    return 5\n")
+    assert set(linalg.drop_stale_caches(str(root), str(lib))) == {
+        str(root / "__pycache__"), str(root / "sub" / "__pycache__")}
+    assert not any(f.exists() for f in files) and lib_cache.exists()
+    assert linalg.drop_stale_caches(str(root), str(lib)) == []
+
+
 def test_the_stamp_follows_numba_to_a_cache_outside_the_tree(tmp_path, monkeypatch):
     """Where numba caches elsewhere (NUMBA_CACHE_DIR here; the user-wide cache of a
     read-only install alike), the stamp and the dropping go there."""

@@ -57,6 +57,7 @@ target's moments use every particle that shares that target (after resampling, u
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -64,16 +65,19 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaincc
 
-from fusion_opt import FusionInputError
+from fusion_opt import FusionInputError, linalg
 from fusion_opt.estimates import Estimates
-from fusion_opt.linalg import jit
+from fusion_opt.linalg import cholesky, jit
 from fusion_opt.validation import safe_repr, wide_float
 from trackers import _checks, kalman
+from trackers.kalman import _LOG_2PI
 from trackers.models import LinearGaussian
 from trackers.rbpf import mixture_moments
 from trackers.resampling import end_of_step
 
-_LOG_2PI = np.log(2.0 * np.pi)
+# `_association`'s cached code embeds fusion_opt's Cholesky: dropped when either changes
+linalg.drop_stale_caches(os.path.dirname(os.path.abspath(__file__)),
+                         os.path.dirname(os.path.abspath(linalg.__file__)))
 
 
 class Track(NamedTuple):
@@ -232,7 +236,7 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
     caller owns. The draw's uniforms (N,) are taken from rng first."""
     u = rng.random(s.alive.shape[0])
     ok, choice, log_pred, m_new, P_new = _association(
-        s.alive, s.M, s.P, p.m0, p.P0, p.model.H, p.model.R, np.ascontiguousarray(y),
+        s.alive, s.M, s.P, p.m0, p.P0, p.model.H, p.model.R, y,
         p.log_clutter_birth, p.log_target, u)
     if not ok:
         raise FusionInputError(
@@ -244,11 +248,12 @@ def _associate(s: RBMCDAState, y: np.ndarray, t: float, p: RBMCDAParams, rng) ->
             f"measurement y = {y.tolist()} has likelihood 0 under every particle's targets "
             "and the birth prior, and clutter has prior 0 (clutter_prior = 0, or "
             "birth_prob = 1): no hypothesis explains it")
-    if (s.logw + log_pred).max() == -np.inf:
+    logw = s.logw + log_pred
+    if logw.max() == -np.inf:
         raise FusionInputError(
             f"measurement y = {y.tolist()} leaves every particle with weight 0: no particle "
             "explains all of this scan's measurements")
-    s = s._replace(logw=s.logw + log_pred)
+    s = s._replace(logw=logw)
     r = np.flatnonzero(choice)  # the particles that chose a target or a birth
     if r.size == 0:
         return s
@@ -349,30 +354,11 @@ def _innovation(m, P, H, R, y, PHt, S, v) -> None:
 
 
 @jit
-def _cholesky(S, L) -> bool:
-    """The lower Cholesky factor L of S (d, d); False where a pivot is not positive."""
-    d = S.shape[0]
-    for j in range(d):
-        s = S[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:  # also NaN
-            return False
-        L[j, j] = np.sqrt(s)
-        for i in range(j + 1, d):
-            t = S[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / L[j, j]
-    return True
-
-
-@jit
 def _log_likelihood(m, P, H, R, y, PHt, S, L, v, z):
     """(log N(y; H m, S), ok) with S = H P H^T + R, by its Cholesky factor; -inf where the
     squared Mahalanobis distance overflows. Leaves v, S, PHt and L in the buffers."""
     _innovation(m, P, H, R, y, PHt, S, v)
-    if not _cholesky(S, L):
+    if not cholesky(S, L):
         return -np.inf, False
     d = y.size
     maha, logdet = 0.0, 0.0
@@ -394,7 +380,7 @@ def _update(m, P, H, R, y, PHt, S, L, v, m_out, P_out) -> None:
     saw, and the same arithmetic gives the same numbers."""
     n, d = m.size, y.size
     _innovation(m, P, H, R, y, PHt, S, v)
-    _cholesky(S, L)  # succeeded in `_log_likelihood` for the same numbers
+    cholesky(S, L)  # succeeded in `_log_likelihood` for the same numbers
     Kt, w = np.empty((d, n)), np.empty(d)
     for col in range(n):  # Kt = S^-1 (P H^T)^T: L w = PHt[col], then L^T Kt[:, col] = w
         for a in range(d):
@@ -489,7 +475,7 @@ def filter_step(s: RBMCDAState, scan: np.ndarray, p: RBMCDAParams, rng):
     M[rows, cols], P[rows, cols] = kalman.predict(M[rows, cols], P[rows, cols],
                                                   p.model.A, p.model.Q)
     s = s._replace(M=M, P=P, alive=alive, ids=ids, tau=s.tau.copy(), k=s.k + 1)
-    for y in scan:
+    for y in np.ascontiguousarray(scan):  # rows of one compiled type
         s = _associate(s, y, t, p, rng)
 
     end = end_of_step(s.logw, p.threshold, rng)
