@@ -29,16 +29,34 @@ def pytest_configure(config):
     kernels, stage by stage, the parts of a stage at once, as a study's pool does
     (`fusion_opt.core.compile_part`, KERNEL_STAGES): on a machine whose cache is cold,
     each test process (two with the default `-n 2` of pyproject.toml) would otherwise
-    compile what its first tests call itself, the same kernels in both. Not in an xdist
-    worker: the controlling process has done it before starting them."""
+    compile what its first tests call itself, the same kernels in both. The second stage
+    also compiles RBMCDA's association (`_compile`). Not in an xdist worker: the
+    controlling process has done it before starting them."""
     if hasattr(config, "workerinput"):
         return
-    from fusion_opt.core import KERNEL_STAGES, compile_part
+    from fusion_opt.core import KERNEL_STAGES
 
-    processes = min(max(map(len, KERNEL_STAGES)), os.cpu_count() or 1)
+    stages = (*KERNEL_STAGES[:-1], (*KERNEL_STAGES[-1], "rbmcda"))
+    processes = min(max(map(len, stages)), os.cpu_count() or 1)
     with multiprocessing.get_context("fork").Pool(processes) as pool:
-        for stage in KERNEL_STAGES:
-            pool.map(compile_part, stage, chunksize=1)
+        for stage in stages:
+            pool.map(_compile, stage, chunksize=1)
+
+
+def _compile(part: str) -> None:
+    """`fusion_opt.core.compile_part`, or for "rbmcda" the trackers' kernel, by one RBMCDA
+    step with a measurement (born: birth_prob = 1)."""
+    if part != "rbmcda":
+        from fusion_opt.core import compile_part
+
+        compile_part(part)
+        return
+    from trackers import rbmcda, scenarios
+
+    cfg = scenarios.Table2Config()
+    m0, P0 = cfg.prior()
+    rbmcda.RBMCDA(cfg.filter_model(), m0, P0, rng=np.random.default_rng(0), dt=cfg.dt,
+                  birth_prob=1.0).step([[0.0, 0.0]])
 
 
 def random_spd(rng: np.random.Generator, n: int, log10_range=(-1.0, 1.0)) -> np.ndarray:

@@ -231,10 +231,11 @@ def test_association_equals_the_numpy_reference(seed):
     i, c = np.argwhere(alive)[0] if alive.any() else (0, 0)
     y = model.H @ M[i, c] + rng.standard_normal(2)  # near a target, if any
     pb, cp = [(0.3, 0.0), (0.01, 0.05), (0.0, 0.5), (1e-300, 0.2), (0.5, 0.5), (0.01, 1.0)][seed]
-    table, log_target = rbmcda.event_log_priors(pb, cp, 1 / 16)
+    p = rbmcda.RBMCDA(model, m0, P0, rng=np.random.default_rng(0), dt=cfg.dt, birth_prob=pb,
+                      clutter_prior=cp).params  # its arrays, as the tracker passes them
     u = rng.random(N)
-    args = (alive, M, P, np.array(m0), np.array(P0), np.array(model.H), np.array(model.R), y,
-            table, log_target, u)
+    args = (alive, M, P, p.m0, p.P0, p.model.H, p.model.R, y, p.log_clutter_birth,
+            p.log_target, u)
     ok, choice, log_pred, m_new, P_new = rbmcda._association(*args)
     ref = numpy_association(*args)
     assert ok
@@ -255,10 +256,9 @@ def test_association_refuses_an_innovation_covariance_without_cholesky_factor():
     cfg, model, m0, P0 = model_and_prior()
     alive = np.array([[True, False]])
     M, P = np.zeros((1, 2, 4)), np.tile(-np.eye(4), (1, 2, 1, 1))
-    table, log_target = rbmcda.event_log_priors(0.01, 0.05, 1 / 16)
-    ok = rbmcda._association(alive, M, P, np.array(m0), np.array(P0), np.array(model.H),
-                             np.array(model.R), np.zeros(2), table, log_target,
-                             np.array([0.5]))[0]
+    p = rbmcda.RBMCDA(model, m0, P0, rng=np.random.default_rng(0), dt=cfg.dt).params
+    ok = rbmcda._association(alive, M, P, p.m0, p.P0, p.model.H, p.model.R, np.zeros(2),
+                             p.log_clutter_birth, p.log_target, np.array([0.5]))[0]
     assert not ok
 
 
